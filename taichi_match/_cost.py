@@ -1,0 +1,114 @@
+"""The cost as the optimiser sees it: eq. (5) as an affine index map, eq. (7)-(8), and the
+finite-difference stencils of eq. (10)-(12).
+
+Pose components are ordered (x, y, theta); ``steps = (eps_x, eps_y, eps_theta)`` in metres and
+radians. All stencil poses a step needs are returned as one (N, 3) batch so that one kernel launch
+evaluates them.
+"""
+
+import numpy as np
+
+from ._grid import GridMap
+
+__all__ = [
+    "affine_coefficients", "prior", "gradient_stencil", "gradient_from_stencil",
+    "hessian_stencil", "hessian_from_stencil",
+]
+
+# ---------------------------------------------------------------------------------------------
+# Eq. (5): f(c_B) = lambda_A^-1(T(r_AB) lambda_B(c_B)), as affine coefficients per pose.
+
+
+def affine_coefficients(poses, a: GridMap, b: GridMap, pad=1):
+    """(N, 6) coefficients mapping B's cell (i, j) to A's (padded) cell coordinates.
+
+    ``u = c0*j + c1*i + c2`` is A's column and ``v = c3*j + c4*i + c5`` A's row, both offset by
+    ``pad`` for A's ring of unknown cells; the cell is (floor(v), floor(u)). B's cells are taken
+    at their centres (eq. 2), rotated and translated (eq. 4) and scaled into A's cells (eq. 3).
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    x, y, theta = poses[:, 0], poses[:, 1], poses[:, 2]
+    c, s = np.cos(theta), np.sin(theta)
+    ratio = b.resolution / a.resolution
+    xb0 = b.origin[0] + 0.5 * b.resolution          # centre of B's cell (0, 0)
+    yb0 = b.origin[1] + 0.5 * b.resolution
+    out = np.empty((len(poses), 6))
+    out[:, 0] = c * ratio
+    out[:, 1] = -s * ratio
+    out[:, 2] = (c * xb0 - s * yb0 + x - a.origin[0]) / a.resolution + pad
+    out[:, 3] = s * ratio
+    out[:, 4] = c * ratio
+    out[:, 5] = (s * xb0 + c * yb0 + y - a.origin[1]) / a.resolution + pad
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Eq. (7)-(8): h = e + K * ||r - r0||,  ||r|| = sqrt(x^2 + y^2 + L^2 theta^2).
+
+
+def prior(pose, initial_pose, weight, rotation_scale):
+    """Value and gradient of K * ||r - r0|| (eq. 7-8); the gradient at r = r0 is taken as 0."""
+    d = np.asarray(pose, dtype=np.float64) - initial_pose
+    w = np.array([1.0, 1.0, rotation_scale**2])
+    norm = float(np.sqrt(np.dot(w * d, d)))
+    if norm == 0.0:
+        return 0.0, np.zeros(3)
+    return weight * norm, weight * w * d / norm
+
+
+# ---------------------------------------------------------------------------------------------
+# Eq. (10): four-point central differences for the gradient.
+
+_GRAD_OFFSETS = (-2.0, -1.0, 1.0, 2.0)
+_GRAD_WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
+
+
+def gradient_stencil(pose, steps):
+    """(13, 3) poses: the centre, then for x, y, theta the offsets -2, -1, +1, +2 steps."""
+    pose = np.asarray(pose, dtype=np.float64)
+    out = np.repeat(pose[None, :], 13, axis=0)
+    for d in range(3):
+        for m, k in enumerate(_GRAD_OFFSETS):
+            out[1 + 4 * d + m, d] += k * steps[d]
+    return out
+
+
+def gradient_from_stencil(values, steps):
+    """Eq. (10) from the 13 values of ``gradient_stencil``."""
+    values = np.asarray(values, dtype=np.float64)
+    return np.array([_GRAD_WEIGHTS @ values[1 + 4 * d: 5 + 4 * d] / steps[d] for d in range(3)])
+
+
+# ---------------------------------------------------------------------------------------------
+# Eq. (11)-(12): the numeric Hessian (5-point diagonal, 4-point mixed terms).
+
+_PAIRS = ((0, 1), (0, 2), (1, 2))
+_CROSS_SIGNS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
+_CROSS_WEIGHTS = np.array([1.0, -1.0, -1.0, 1.0]) / 4.0
+_DIAG_WEIGHTS = np.array([-1.0, 16.0, 16.0, -1.0]) / 12.0     # at -2, -1, +1, +2 steps; centre -30/12
+
+
+def hessian_stencil(pose, steps):
+    """(25, 3) poses: the 13 of ``gradient_stencil``, then 4 corners for each pair (x,y), (x,t), (y,t)."""
+    pose = np.asarray(pose, dtype=np.float64)
+    out = np.empty((25, 3))
+    out[:13] = gradient_stencil(pose, steps)
+    row = 13
+    for d1, d2 in _PAIRS:
+        for s1, s2 in _CROSS_SIGNS:
+            out[row] = pose
+            out[row, d1] += s1 * steps[d1]
+            out[row, d2] += s2 * steps[d2]
+            row += 1
+    return out
+
+
+def hessian_from_stencil(values, steps):
+    """Eq. (12) from the 25 values of ``hessian_stencil``; returns the symmetric 3x3 Hessian."""
+    values = np.asarray(values, dtype=np.float64)
+    h = np.empty((3, 3))
+    for d in range(3):
+        h[d, d] = (_DIAG_WEIGHTS @ values[1 + 4 * d: 5 + 4 * d] - 30.0 / 12.0 * values[0]) / steps[d] ** 2
+    for p, (d1, d2) in enumerate(_PAIRS):
+        h[d1, d2] = h[d2, d1] = _CROSS_WEIGHTS @ values[13 + 4 * p: 17 + 4 * p] / (steps[d1] * steps[d2])
+    return h

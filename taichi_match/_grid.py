@@ -1,0 +1,142 @@
+"""The occupancy grid type and its conventions: eq. (2) and (3) of the paper.
+
+Conventions, stated once for the whole library:
+
+- ``prob[i, j]`` is the occupancy probability of cell (i, j), in [0, 1]; NaN marks an unknown cell.
+- ``i`` is the row and grows with y; ``j`` is the column and grows with x (as ROS
+  ``nav_msgs/OccupancyGrid``, whose data is row-major with row 0 at the lowest y).
+- ``resolution`` is the cell side in metres; ``origin = (x0, y0)`` is the outer corner of cell (0, 0)
+  in the map's own frame, so cell (i, j) covers x in [x0 + j*res, x0 + (j+1)*res) and
+  y in [y0 + i*res, y0 + (i+1)*res).
+- A cell is represented by its centre (eq. 2); a point falls in the cell given by floor (eq. 3).
+"""
+
+import numbers
+
+import numpy as np
+
+from ._errors import InvalidMapError
+
+__all__ = ["GridMap"]
+
+
+class GridMap:
+    """An immutable 2-D occupancy grid with its resolution and origin.
+
+    Parameters
+    ----------
+    prob : array_like, shape (rows, cols)
+        Occupancy probabilities in [0, 1], NaN for unknown cells. Row i grows with y.
+    resolution : float
+        Cell side in metres, > 0.
+    origin : (float, float)
+        (x0, y0) of the outer corner of cell (0, 0), metres, in the map's own frame.
+    """
+
+    __slots__ = ("_prob", "_resolution", "_origin", "__weakref__")
+
+    def __init__(self, prob, resolution, origin=(0.0, 0.0)):
+        self._prob = _check_prob(prob)
+        self._resolution = _check_resolution(resolution)
+        self._origin = _check_origin(origin)
+
+    @property
+    def prob(self):
+        """Read-only float64 array (rows, cols); NaN = unknown."""
+        return self._prob
+
+    @property
+    def resolution(self):
+        return self._resolution
+
+    @property
+    def origin(self):
+        """(x0, y0): outer corner of cell (0, 0), metres."""
+        return self._origin
+
+    @property
+    def shape(self):
+        return self._prob.shape
+
+    @property
+    def known(self):
+        """Boolean mask of known (non-NaN) cells."""
+        return ~np.isnan(self._prob)
+
+    @property
+    def extent(self):
+        """(x_min, x_max, y_min, y_max) of the grid in its own frame, metres."""
+        x0, y0 = self._origin
+        rows, cols = self.shape
+        return (x0, x0 + cols * self._resolution, y0, y0 + rows * self._resolution)
+
+    def cell_centres(self, rows=None, cols=None):
+        """Eq. (2): the (x, y) centres of cells (rows[k], cols[k]); all cells when both are None."""
+        if rows is None and cols is None:
+            rows, cols = np.indices(self.shape)
+        rows = np.asarray(rows, dtype=np.float64)
+        cols = np.asarray(cols, dtype=np.float64)
+        x0, y0 = self._origin
+        return np.stack([x0 + (cols + 0.5) * self._resolution, y0 + (rows + 0.5) * self._resolution], axis=-1)
+
+    def cell_of(self, points):
+        """Eq. (3): integer (row, col) of the cells the points (..., 2) fall in (may lie outside)."""
+        points = np.asarray(points, dtype=np.float64)
+        x0, y0 = self._origin
+        cols = np.floor((points[..., 0] - x0) / self._resolution)
+        rows = np.floor((points[..., 1] - y0) / self._resolution)
+        return rows, cols
+
+    def with_prob(self, prob):
+        """A map with the same geometry and new probabilities."""
+        return GridMap(prob, self._resolution, self._origin)
+
+    def __repr__(self):
+        rows, cols = self.shape
+        known = int(self.known.sum())
+        return (f"GridMap({rows}x{cols} cells, resolution={self._resolution} m, origin={self._origin}, "
+                f"{known} known cells)")
+
+
+def _check_prob(prob):
+    try:
+        arr = np.asarray(prob)
+    except Exception as exc:  # pragma: no cover - exotic array-likes
+        raise InvalidMapError(f"prob must be a 2-D array of probabilities; got {type(prob).__name__}") from exc
+    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
+                                   or arr.dtype == bool):
+        raise InvalidMapError(f"prob must hold real numbers (float, int or bool); got dtype {arr.dtype}")
+    if arr.ndim != 2:
+        raise InvalidMapError(f"prob must be 2-D (rows, cols); got {arr.ndim}-D with shape {arr.shape}")
+    if arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise InvalidMapError(f"prob must have at least one row and one column; got shape {arr.shape}")
+    arr = np.array(arr, dtype=np.float64, copy=True)
+    if np.isinf(arr).any():
+        raise InvalidMapError("prob holds infinite values; use NaN for unknown cells and [0, 1] otherwise")
+    finite = arr[~np.isnan(arr)]
+    if finite.size and (finite.min() < 0.0 or finite.max() > 1.0):
+        raise InvalidMapError(f"prob must lie in [0, 1] (NaN = unknown); got values in "
+                              f"[{finite.min():g}, {finite.max():g}]")
+    arr.setflags(write=False)
+    return arr
+
+
+def _check_resolution(resolution):
+    if isinstance(resolution, bool) or not isinstance(resolution, (numbers.Real, np.floating, np.integer)):
+        raise InvalidMapError(f"resolution must be a positive number of metres per cell; got {resolution!r}")
+    res = float(resolution)
+    if not np.isfinite(res) or res <= 0.0:
+        raise InvalidMapError(f"resolution must be finite and > 0 (metres per cell); got {res}")
+    return res
+
+
+def _check_origin(origin):
+    try:
+        arr = np.asarray(origin, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidMapError(f"origin must be two numbers (x0, y0) in metres; got {origin!r}") from exc
+    if arr.shape != (2,):
+        raise InvalidMapError(f"origin must be (x0, y0), shape (2,); got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InvalidMapError(f"origin must be finite; got {arr.tolist()}")
+    return (float(arr[0]), float(arr[1]))

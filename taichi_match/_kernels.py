@@ -1,0 +1,130 @@
+"""Taichi kernels (CPU backend) evaluating eq. (6) for a batch of poses in one parallel launch.
+
+The kernels know nothing but arrays:
+
+- ``a``: map A padded with one ring of unknown cells, float32, unknown = -1. Any lookup outside A
+  is clamped onto that ring, so the inner loop needs no bounds branch.
+- ``b``: map B, float32, unknown = -1; ``rows``, ``lo``, ``hi``: the rows of B holding known cells
+  and, per row, the column range [lo, hi) that holds them.
+- ``affine``: (N, 6) float64, per pose the map from B's cell indices to A's padded cell
+  coordinates: ``u = c0*j + c1*i + c2`` (column) and ``v = c3*j + c4*i + c5`` (row); A's cell is
+  (floor(v), floor(u)). ``_cost.affine_coefficients`` builds it from eq. (2)-(5).
+
+Output is one partial sum and one count per (pose, row), written without atomics so the result is
+bit-identical run after run; the caller adds the rows in float64. Each row is summed in float32
+(at most a few thousand terms of size <= 1).
+
+Taichi is imported and initialised lazily, on the first evaluation: CPU backend, all cores, no
+banner, no network version check. A host that already called ``ti.init`` keeps its runtime.
+Calls are serialised with a lock (Taichi is not thread-safe), and a process forked after Taichi
+was initialised gets an error instead of the hang Taichi would give.
+"""
+
+import contextlib
+import io
+import os
+import threading
+import warnings
+
+import numpy as np
+
+from ._errors import EngineError
+
+__all__ = ["TaichiEngine", "ensure_initialized"]
+
+_LOCK = threading.RLock()
+_STATE = {"ti": None, "kernel": None, "init_pid": None}
+
+
+def _import_taichi():
+    if _STATE["ti"] is None:
+        os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
+        os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+        os.environ.setdefault("TI_ENABLE_PYBUF", "0")      # else a wrapped stdout adds a print per launch
+        with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)   # taichi 1.7 uses deprecated stdlib calls
+            import taichi as ti
+        _STATE["ti"] = ti
+    return _STATE["ti"]
+
+
+def ensure_initialized():
+    """Initialise Taichi on the CPU once (or adopt the host's runtime) and build the kernel."""
+    with _LOCK:
+        ti = _import_taichi()
+        runtime = ti.lang.impl.get_runtime()
+        if runtime.prog is None:
+            with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                ti.init(arch=ti.cpu, cpu_max_num_threads=os.cpu_count() or 1, offline_cache=True,
+                        log_level=ti.WARN)
+            _STATE["init_pid"] = os.getpid()
+        elif _STATE["init_pid"] is None:
+            _STATE["init_pid"] = os.getpid()     # the host initialised Taichi in this process
+        if _STATE["init_pid"] != os.getpid():
+            raise EngineError(
+                "Taichi was initialised in a parent process before this one was forked; Taichi kernels "
+                "hang in a forked child. Start worker processes with the 'spawn' or 'forkserver' method "
+                "(multiprocessing.get_context('spawn')), or use the engine only in the children.")
+        if _STATE["kernel"] is None:
+            _STATE["kernel"] = _build_kernel(ti)
+        return _STATE["kernel"]
+
+
+def _build_kernel(ti):
+    f32_2d = ti.types.ndarray(dtype=ti.f32, ndim=2)
+    i32_1d = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+    @ti.kernel
+    def discrepancy_rows(a: f32_2d, b: f32_2d, rows: i32_1d, lo: i32_1d, hi: i32_1d,
+                         affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                         out_sum: f32_2d, out_count: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+        u_max = ti.f32(a.shape[1] - 1)
+        v_max = ti.f32(a.shape[0] - 1)
+        for k, r in ti.ndrange(affine.shape[0], rows.shape[0]):
+            i = rows[r]
+            du = ti.f32(affine[k, 0])
+            dv = ti.f32(affine[k, 3])
+            u0 = ti.f32(affine[k, 1] * i + affine[k, 2])
+            v0 = ti.f32(affine[k, 4] * i + affine[k, 5])
+            acc = ti.f32(0.0)
+            cnt = 0
+            for j in range(lo[r], hi[r]):
+                u = ti.min(ti.max(u0 + du * j, 0.0), u_max)     # clamp onto the unknown ring
+                v = ti.min(ti.max(v0 + dv * j, 0.0), v_max)
+                pa = a[ti.cast(v, ti.i32), ti.cast(u, ti.i32)]     # u, v >= 0: cast is floor
+                pb = b[i, j]
+                ok = (pa >= 0.0) & (pb >= 0.0)
+                acc += ti.select(ok, ti.abs(pa - pb), 0.0)
+                cnt += ti.select(ok, 1, 0)
+            out_sum[k, r] = acc
+            out_count[k, r] = cnt
+
+    return discrepancy_rows
+
+
+class TaichiEngine:
+    """Evaluate eq. (6) for batches of poses on prepared arrays with the Taichi kernel."""
+
+    name = "taichi"
+
+    def __init__(self, a_padded, b, rows, lo, hi):
+        self._a = a_padded
+        self._b = b
+        self._rows = rows
+        self._lo = lo
+        self._hi = hi
+
+    def __call__(self, affine):
+        """affine: (N, 6) float64. Returns (discrepancy float64 (N,), overlap int64 (N,))."""
+        n = affine.shape[0]
+        n_rows = self._rows.shape[0]
+        if n_rows == 0:
+            return np.zeros(n), np.zeros(n, dtype=np.int64)
+        out_sum = np.empty((n, n_rows), dtype=np.float32)
+        out_count = np.empty((n, n_rows), dtype=np.int32)
+        with _LOCK:
+            kernel = ensure_initialized()
+            kernel(self._a, self._b, self._rows, self._lo, self._hi, np.ascontiguousarray(affine, np.float64),
+                   out_sum, out_count)
+        return out_sum.sum(axis=1, dtype=np.float64), out_count.sum(axis=1, dtype=np.int64)

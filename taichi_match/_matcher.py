@@ -1,0 +1,234 @@
+"""The public face: options, the result, and the matcher that ties the steps together.
+
+Data flows one way: maps -> prepared (blurred) maps -> batched evaluation of eq. (6) ->
+cost h (eq. 8) with its stencil gradient (eq. 10) -> BFGS (eq. 9) -> Hessian (eq. 12) ->
+covariance (eq. 11).
+"""
+
+import dataclasses
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+from typing import Literal, Optional
+
+import numpy as np
+
+from ._bfgs import MESSAGES, Status, minimize_bfgs
+from ._cost import gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior
+from ._covariance import covariance_from_hessian
+from ._errors import InvalidMapError
+from ._grid import GridMap
+from ._prepared import ENGINES, PreparedMap, make_engine
+from ._se2 import as_pose, wrap_angle
+
+__all__ = ["MatchOptions", "MatchResult", "Matcher", "match"]
+
+
+@dataclass(frozen=True)
+class MatchOptions:
+    """Settings of a match. Units: metres, radians; K in discrepancy units per metre.
+
+    blur : width of the grey ramp spread from occupied cells (sec. 3.2), metres.
+    prior_weight : K of eq. (8), discrepancy (cells x probability) per metre of ||r - r0||.
+    rotation_scale : L of eq. (7), metres per radian.
+    step : finite-difference step eps for x and y (eq. 10-12), metres; None = A's resolution.
+    rotation_step : eps for theta, radians; None = step / rotation_scale.
+    max_step : longest BFGS step in scaled units (metres), None = blur / 2.
+    xtol : the optimiser stops when a step is shorter than xtol * step.
+    gtol : ... or when the gradient norm of h is below gtol * prior_weight.
+    max_iterations : BFGS iteration budget.
+    covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
+    engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
+    """
+
+    blur: float = 1.5
+    prior_weight: float = 100.0
+    rotation_scale: float = 3.0
+    step: Optional[float] = None
+    rotation_step: Optional[float] = None
+    max_step: Optional[float] = None
+    xtol: float = 0.05
+    gtol: float = 1e-3
+    max_iterations: int = 100
+    covariance_scale: float = 1.0
+    engine: Literal["taichi", "numpy"] = "taichi"
+
+    def __post_init__(self):
+        for name in ("blur", "prior_weight", "xtol", "gtol", "covariance_scale"):
+            _check_number(name, getattr(self, name), minimum=0.0)
+        _check_number("rotation_scale", self.rotation_scale, minimum=0.0, strict=True)
+        for name in ("step", "rotation_step", "max_step"):
+            if getattr(self, name) is not None:
+                _check_number(name, getattr(self, name), minimum=0.0, strict=True)
+        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, (int, np.integer)) \
+                or self.max_iterations < 0:
+            raise ValueError(f"max_iterations must be an integer >= 0; got {self.max_iterations!r}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}; got {self.engine!r}")
+
+    def steps(self, resolution_a):
+        """(eps_x, eps_y, eps_theta) for a map A of the given resolution."""
+        eps = self.step if self.step is not None else resolution_a
+        eps_theta = self.rotation_step if self.rotation_step is not None else eps / self.rotation_scale
+        return np.array([eps, eps, eps_theta])
+
+
+def _check_number(name, value, *, minimum, strict=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a number; got {value!r}")
+    if not np.isfinite(value) or value < minimum or (strict and value == minimum):
+        raise ValueError(f"{name} must be finite and {'>' if strict else '>='} {minimum}; got {value!r}")
+
+
+@dataclass(frozen=True)
+class MatchResult:
+    """The outcome of a match, in the style of ``scipy.optimize.OptimizeResult``.
+
+    pose : r_A2B = (x, y, theta), maps B's frame into A's; theta in (-pi, pi].
+    covariance : 3x3 in (x, y, theta) units, ``covariance_scale * H(e)^-1`` with degenerate
+        directions given a very large variance (eq. 11).
+    information : the 3x3 numeric Hessian of e at ``pose`` (eq. 12), unmodified.
+    degenerate : (k, 3) unit vectors in (x, y, theta) along which the maps give (almost) no
+        information, e.g. (1, 0, 0) in a corridor along x.
+    cost : h at ``pose`` (eq. 8), on the blurred maps.
+    discrepancy : e at ``pose`` (eq. 6), on the blurred maps.
+    overlap : number of known cells of B that land on known cells of A at ``pose``.
+    initial_pose, iterations, evaluations (poses evaluated), launches (batched evaluations),
+    converged, status, message, seconds (wall clock of the whole match).
+    """
+
+    pose: np.ndarray
+    covariance: np.ndarray
+    information: np.ndarray
+    degenerate: np.ndarray
+    cost: float
+    discrepancy: float
+    overlap: int
+    initial_pose: np.ndarray
+    iterations: int
+    evaluations: int
+    launches: int
+    converged: bool
+    status: Status
+    message: str
+    seconds: float
+    options: MatchOptions = field(repr=False)
+
+    # OptimizeResult-style aliases
+    @property
+    def x(self):
+        return self.pose
+
+    @property
+    def fun(self):
+        return self.cost
+
+    @property
+    def success(self):
+        return self.converged
+
+    @property
+    def nit(self):
+        return self.iterations
+
+    @property
+    def nfev(self):
+        return self.evaluations
+
+    def __repr__(self):
+        x, y, t = self.pose
+        return (f"MatchResult(pose=({x:.4f} m, {y:.4f} m, {t:.5f} rad), status={self.status.name}, "
+                f"iterations={self.iterations}, overlap={self.overlap}, seconds={self.seconds:.4f})")
+
+
+class Matcher:
+    """A reusable matcher: prepared maps are cached per (map, blur) and the kernels compile once.
+
+    Use one matcher in a loop that matches many pairs; maps of any size share the compiled kernel.
+    """
+
+    def __init__(self, options: Optional[MatchOptions] = None, **overrides):
+        options = options if options is not None else MatchOptions()
+        self.options = dataclasses.replace(options, **overrides) if overrides else options
+        self._cache = weakref.WeakKeyDictionary()      # GridMap -> {blur width: PreparedMap}
+        self._lock = threading.Lock()
+
+    def prepare(self, grid: GridMap, blur: Optional[float] = None) -> PreparedMap:
+        """Blur ``grid`` once (cached for as long as the map lives)."""
+        if not isinstance(grid, GridMap):
+            raise InvalidMapError(f"expected a GridMap; got {type(grid).__name__}")
+        width = self.options.blur if blur is None else float(blur)
+        with self._lock:
+            per_map = self._cache.setdefault(grid, {})
+            prepared = per_map.get(width)
+        if prepared is None:
+            prepared = PreparedMap(grid, width)
+            with self._lock:
+                prepared = per_map.setdefault(width, prepared)
+        return prepared
+
+    def match(self, a: GridMap, b: GridMap, initial_pose, **overrides) -> MatchResult:
+        """Find r_A2B near ``initial_pose`` minimising h (eq. 8-9); see ``match``."""
+        start = time.perf_counter()
+        opts = dataclasses.replace(self.options, **overrides) if overrides else self.options
+        r0 = as_pose(initial_pose, "initial_pose")
+        r0[2] = wrap_angle(r0[2])
+        prep_a = self.prepare(a, opts.blur)
+        prep_b = self.prepare(b, opts.blur)
+        engine = make_engine(opts.engine, prep_a, prep_b)
+        steps = opts.steps(a.resolution)
+        scale = np.array([1.0, 1.0, opts.rotation_scale])          # z = r * scale, all in metres
+        launches = 0
+        evaluations = 0
+
+        def evaluate(poses):
+            nonlocal launches, evaluations
+            launches += 1
+            evaluations += len(poses)
+            return engine(poses)
+
+        def fun_grad(z):
+            r = z / scale
+            values, counts = evaluate(gradient_stencil(r, steps))
+            p_val, p_grad = prior(r, r0, opts.prior_weight, opts.rotation_scale)
+            grad = gradient_from_stencil(values, steps) + p_grad
+            return values[0] + p_val, grad / scale, (values[0], int(counts[0]))
+
+        max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
+        _, overlap0 = evaluate(r0[None, :])
+        if overlap0[0] == 0:
+            status, r, e, overlap, nit = Status.NO_OVERLAP, r0, 0.0, 0, 0
+            cost = 0.0
+        else:
+            res = minimize_bfgs(fun_grad, r0 * scale, max_step=max_step, xtol=opts.xtol * steps[0],
+                                gtol=opts.gtol * opts.prior_weight, max_iterations=opts.max_iterations)
+            r = res.z / scale
+            e, overlap = res.extra
+            status, nit, cost = res.status, res.nit, res.fun
+        values, _ = evaluate(hessian_stencil(r, steps))
+        information = hessian_from_stencil(values, steps)
+        covariance, degenerate = covariance_from_hessian(information, opts.rotation_scale,
+                                                         scale=opts.covariance_scale)
+        pose = np.array([r[0], r[1], wrap_angle(r[2])])
+        return MatchResult(
+            pose=pose, covariance=covariance, information=information, degenerate=degenerate,
+            cost=float(cost), discrepancy=float(e), overlap=int(overlap), initial_pose=r0,
+            iterations=nit, evaluations=evaluations, launches=launches, converged=status.converged,
+            status=status, message=MESSAGES[status], seconds=time.perf_counter() - start, options=opts)
+
+
+_DEFAULT = {}
+
+
+def match(a: GridMap, b: GridMap, initial_pose, **options) -> MatchResult:
+    """Find the pose r_A2B of map B in map A near ``initial_pose`` (the paper's method).
+
+    ``options`` are fields of ``MatchOptions`` (blur, prior_weight, rotation_scale, step, ...).
+    Non-convergence and a missing overlap are reported in the result (``converged``, ``status``,
+    ``message``), not raised. For many matches, reuse a ``Matcher``.
+    """
+    matcher = _DEFAULT.get("matcher")
+    if matcher is None:
+        matcher = _DEFAULT.setdefault("matcher", Matcher())
+    return matcher.match(a, b, initial_pose, **options)

@@ -1,0 +1,47 @@
+import numpy as np
+import pytest
+
+from taichi_match._covariance import covariance_from_hessian
+
+
+def test_regular_hessian_inverts_exactly():
+    h = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
+    cov, degenerate = covariance_from_hessian(h, rotation_scale=2.0)
+    assert np.allclose(cov, np.linalg.inv(h))
+    assert degenerate.shape == (0, 3)
+
+
+def test_scale_multiplies_the_covariance():
+    h = np.diag([4.0, 2.0, 1.0])
+    cov, _ = covariance_from_hessian(h, 1.0, scale=3.0)
+    assert np.allclose(cov, 3.0 * np.diag([0.25, 0.5, 1.0]))
+
+
+def test_corridor_like_singular_hessian_gives_huge_finite_variance_along_the_free_axis():
+    h = np.diag([0.0, 4.0e6, 9.0e7])
+    cov, degenerate = covariance_from_hessian(h, rotation_scale=3.0)
+    assert np.all(np.isfinite(cov))
+    assert cov[1, 1] == pytest.approx(0.25e-6) and cov[2, 2] == pytest.approx(1 / 9.0e7)
+    assert cov[0, 0] > 1e6 * cov[1, 1]
+    assert np.allclose(degenerate, [[1.0, 0.0, 0.0]])
+
+
+def test_indefinite_hessian_flags_the_negative_direction_and_stays_positive_definite():
+    h = np.array([[-5.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]])
+    cov, degenerate = covariance_from_hessian(h, 1.0)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    assert np.allclose(np.abs(degenerate), [[1.0, 0.0, 0.0]])
+
+
+def test_zero_and_nan_free_for_no_information():
+    cov, degenerate = covariance_from_hessian(np.zeros((3, 3)), 1.0)
+    assert np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 1e6)
+    assert len(degenerate) == 3
+
+
+def test_degenerate_direction_is_reported_in_pose_units():
+    # information only along y; the (x, theta) plane is free: two degenerate directions
+    h = np.diag([0.0, 1.0, 0.0])
+    _, degenerate = covariance_from_hessian(h, 5.0)
+    assert len(degenerate) == 2
+    assert np.allclose(np.abs(degenerate) @ [0, 1, 0], 0.0)

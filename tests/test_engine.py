@@ -1,0 +1,94 @@
+"""Taichi hygiene and the reusable matcher: lazy init, silence, host runtime, fork, no recompiles."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+
+from conftest import random_map
+from taichi_match import GridMap, Matcher, discrepancy
+from taichi_match import _kernels
+
+
+def run_python(code):
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("TI_", "ENABLE_TAICHI"))}
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
+                          timeout=300, env=env)
+
+
+def test_import_does_not_start_taichi_and_a_match_prints_nothing():
+    out = run_python("""
+        import os, sys
+        import numpy as np
+        import taichi_match as tm
+        assert "taichi" not in sys.modules, "taichi imported eagerly"
+        a = tm.GridMap(np.zeros((30, 30)), 0.1)
+        res = tm.match(a, a, (0.0, 0.0, 0.0))
+        assert os.environ["TI_SKIP_VERSION_CHECK"] == "ON"
+        import taichi as ti
+        assert ti.lang.impl.get_runtime().prog is not None
+    """)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout == "" and out.stderr == ""
+
+
+def test_a_host_runtime_is_reused_not_reset():
+    out = run_python("""
+        import contextlib, io
+        import numpy as np
+        with contextlib.redirect_stdout(io.StringIO()):
+            import taichi as ti
+            ti.init(arch=ti.cpu)
+        prog = ti.lang.impl.get_runtime().prog
+        field = ti.field(ti.f32, shape=4)
+        field[2] = 7.0
+        import taichi_match as tm
+        a = tm.GridMap(np.zeros((30, 30)), 0.1)
+        tm.match(a, a, (0.0, 0.0, 0.0))
+        assert ti.lang.impl.get_runtime().prog is prog
+        assert field[2] == 7.0
+    """)
+    assert out.returncode == 0, out.stderr
+
+
+def test_a_child_forked_after_initialisation_gets_an_error_not_a_hang():
+    out = run_python("""
+        import os
+        import numpy as np
+        import taichi_match as tm
+        a = tm.GridMap(np.zeros((30, 30)), 0.1)
+        tm.discrepancy(a, a, [(0.0, 0.0, 0.0)])
+        pid = os.fork()
+        if pid == 0:
+            try:
+                tm.discrepancy(a, a, [(0.0, 0.0, 0.0)])
+            except tm.EngineError as exc:
+                os._exit(0 if "spawn" in str(exc) else 3)
+            os._exit(2)
+        _, status = os.waitpid(pid, 0)
+        raise SystemExit(os.waitstatus_to_exitcode(status))
+    """)
+    assert out.returncode == 0, (out.returncode, out.stderr)
+
+
+def test_maps_of_new_sizes_do_not_recompile(rng):
+    a = random_map(rng, (30, 40), 0.1, (0.0, 0.0))
+    discrepancy(a, a, [(0.0, 0.0, 0.0)])
+    kernel = _kernels.ensure_initialized()
+    compiled = len(kernel._primal.compiled_kernels)
+    for shape in ((17, 301), (480, 480), (5, 3)):
+        b = random_map(rng, shape, 0.05, (-1.0, -1.0))
+        discrepancy(a, b, rng.uniform(-1, 1, (7, 3)))
+        Matcher().match(b, b, (0.01, 0.0, 0.0))
+    assert len(kernel._primal.compiled_kernels) == compiled == 1
+
+
+def test_matcher_caches_prepared_maps_per_blur():
+    grid = GridMap(np.zeros((10, 10)), 0.1)
+    m = Matcher()
+    first = m.prepare(grid)
+    assert m.prepare(grid) is first
+    assert m.prepare(grid, blur=0.3) is not first
+    assert m.prepare(grid, blur=0.3).blur_width == 0.3

@@ -1,0 +1,138 @@
+"""End-to-end matches against synthetic ground truth."""
+
+import numpy as np
+import pytest
+
+from conftest import rasterize, room_scene
+from taichi_match import GridMap, InvalidMapError, InvalidPoseError, Matcher, Status, match
+from taichi_match.scenes import corridor
+
+
+@pytest.fixture(scope="module")
+def corridor_map():
+    return corridor()
+
+
+@pytest.fixture(scope="module")
+def matcher():
+    return Matcher()
+
+
+def test_corridor_builder_geometry(corridor_map):
+    prob = corridor_map.prob
+    assert prob.shape == (480, 480) and corridor_map.resolution == 0.025
+    column = prob[:, 17]
+    assert np.array_equal(prob, np.repeat(prob[:, :1], 480, axis=1), equal_nan=True)   # along x
+    free = np.flatnonzero(column == 0.0)
+    walls = np.flatnonzero(column == 1.0)
+    assert len(free) * 0.025 == pytest.approx(6.0)               # 6 m of free corridor
+    assert len(walls) == 4                                        # two 2-cell walls
+    centres_y = corridor_map.cell_centres(walls, np.zeros_like(walls))[:, 1]
+    assert np.all(np.abs(np.abs(centres_y) - 3.0) < 0.05)
+
+
+@pytest.mark.parametrize("ranges, required", [((0.5, 0.5, 0.5), 99), ((1.5, 1.5, 0.38), 98)])
+def test_paper_table_1_on_the_corridor(corridor_map, matcher, ranges, required):
+    """The paper's protocol: 100 seeded initial poses; success is |y| < 0.025 m, |theta| < 0.045."""
+    rng = np.random.default_rng(2010)
+    ok = 0
+    for _ in range(100):
+        r0 = rng.uniform(-1.0, 1.0, 3) * ranges
+        res = matcher.match(corridor_map, corridor_map, r0)
+        ok += abs(res.pose[1]) < 0.025 and abs(res.pose[2]) < 0.045
+    assert ok >= required
+
+
+def test_corridor_covariance_is_long_along_the_corridor(corridor_map, matcher):
+    res = matcher.match(corridor_map, corridor_map, (0.3, 0.2, 0.1))
+    assert res.converged
+    cov = res.covariance
+    assert np.all(np.isfinite(cov))
+    assert cov[0, 0] >= 100 * cov[1, 1]
+    assert len(res.degenerate) == 1 and abs(res.degenerate[0, 0]) > 0.99
+    assert abs(res.pose[0] - 0.3) < 0.05          # along the corridor the prior keeps x near x0
+
+
+@pytest.mark.parametrize("truth, res_b, shape_b, origin_b", [
+    ((0.3, -0.2, 0.15), 0.025, (260, 340), (-4.2, -3.2)),
+    ((-0.5, 0.4, -0.3), 0.025, (250, 330), (-4.0, -3.0)),
+    ((0.2, 0.1, 0.05), 0.05, (130, 170), (-4.2, -3.2)),      # B coarser than A
+])
+def test_recovers_a_known_pose_of_a_resampled_copy(truth, res_b, shape_b, origin_b):
+    a = rasterize(room_scene, (250, 330), 0.025, (-4.1, -3.1))
+    b = rasterize(room_scene, shape_b, res_b, origin_b, pose_a2b=truth)
+    rng = np.random.default_rng(5)
+    for _ in range(4):
+        r0 = np.array(truth) + rng.uniform(-1, 1, 3) * (0.2, 0.2, 0.08)
+        res = match(a, b, r0)
+        assert res.converged, res.message
+        err = res.pose - truth
+        assert np.hypot(err[0], err[1]) < 2 * 0.025 and abs(err[2]) < np.radians(1.0), (r0, res.pose)
+        assert len(res.degenerate) == 0
+        assert np.all(np.linalg.eigvalsh(res.covariance) > 0)
+
+
+def test_result_fields(corridor_map, matcher):
+    res = matcher.match(corridor_map, corridor_map, (0.1, 0.1, 0.02))
+    assert res.pose.shape == (3,) and res.covariance.shape == (3, 3) and res.information.shape == (3, 3)
+    assert res.x is res.pose and res.fun == res.cost and res.nit == res.iterations
+    assert res.success == res.converged is True and isinstance(res.status, Status)
+    assert res.cost >= res.discrepancy >= 0.0
+    assert 0 < res.overlap <= np.count_nonzero(corridor_map.known)
+    assert res.evaluations >= 13 * res.iterations and res.launches >= res.iterations
+    assert res.seconds > 0 and "converged" in res.message
+    assert -np.pi < res.pose[2] <= np.pi
+
+
+def test_match_is_deterministic(corridor_map):
+    results = [Matcher().match(corridor_map, corridor_map, (0.4, -0.3, 0.2)) for _ in range(3)]
+    for res in results[1:]:
+        assert np.array_equal(res.pose, results[0].pose)
+        assert np.array_equal(res.covariance, results[0].covariance)
+
+
+def test_no_overlap_is_reported_not_raised():
+    a = GridMap(np.zeros((20, 20)), 0.1)
+    res = match(a, a, (100.0, 0.0, 0.0))
+    assert res.status == Status.NO_OVERLAP and not res.converged
+    assert np.array_equal(res.pose, [100.0, 0.0, 0.0]) and res.overlap == 0
+    assert np.all(np.isfinite(res.covariance)) and len(res.degenerate) == 3
+    assert "overlap" in res.message
+
+
+def test_iteration_budget_is_reported_not_raised(corridor_map, matcher):
+    res = matcher.match(corridor_map, corridor_map, (0.0, 0.8, 0.3), max_iterations=1)
+    assert res.status == Status.MAX_ITERATIONS and not res.converged and res.iterations == 1
+    assert np.all(np.isfinite(res.pose))
+
+
+def test_all_unknown_map_gives_no_overlap():
+    a = GridMap(np.zeros((10, 10)), 0.1)
+    b = GridMap(np.full((10, 10), np.nan), 0.1)
+    assert match(a, b, (0.0, 0.0, 0.0)).status == Status.NO_OVERLAP
+
+
+def test_the_numpy_engine_runs_the_same_algorithm(corridor_map):
+    r0 = (0.2, 0.3, 0.1)
+    fast = Matcher().match(corridor_map, corridor_map, r0)
+    slow = Matcher(engine="numpy").match(corridor_map, corridor_map, r0)
+    assert abs(fast.pose[1] - slow.pose[1]) < 0.01 and abs(fast.pose[2] - slow.pose[2]) < 0.005
+
+
+@pytest.mark.parametrize("pose", [(0.0, np.nan, 0.0), (0.0, 0.0), "abc", (0.0, np.inf, 0.0)])
+def test_bad_initial_pose(pose):
+    a = GridMap(np.zeros((5, 5)), 0.1)
+    with pytest.raises(InvalidPoseError):
+        match(a, a, pose)
+
+
+def test_bad_maps_and_options():
+    a = GridMap(np.zeros((5, 5)), 0.1)
+    with pytest.raises(InvalidMapError):
+        match(np.zeros((5, 5)), a, (0, 0, 0))
+    with pytest.raises(TypeError):
+        match(a, a, (0, 0, 0), no_such_option=1)
+    for bad in (dict(blur=-1.0), dict(prior_weight=np.nan), dict(rotation_scale=0.0),
+                dict(max_iterations=-1), dict(step=0.0), dict(engine="cuda"), dict(max_iterations=2.5)):
+        with pytest.raises(ValueError):
+            match(a, a, (0, 0, 0), **bad)
