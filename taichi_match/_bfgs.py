@@ -57,12 +57,13 @@ class BfgsResult:
     nfev: int
 
 
-def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4, shrink=0.5):
+def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4):
     """Minimise ``fun_grad(z) -> (f, g, extra)`` from z0; see the module docstring."""
     z = np.asarray(z0, dtype=np.float64).copy()
     f, g, extra = fun_grad(z)
     nfev = 1
     hinv = None                                    # None: steepest descent with a capped step
+    sd_length = max_step                           # steepest-descent step: last accepted length
     status = Status.MAX_ITERATIONS
     nit = 0
     while nit < max_iterations:
@@ -75,19 +76,12 @@ def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4
             if quasi_newton and p @ g >= 0.0:
                 continue
             norm_p = np.linalg.norm(p)
-            if norm_p > max_step or not quasi_newton:
-                p = p * (max_step / norm_p)
-                norm_p = max_step
-            slope = p @ g
-            alpha = 1.0
-            while alpha * norm_p >= xtol:
-                z_new = z + alpha * p
-                f_new, g_new, extra_new = fun_grad(z_new)
-                nfev += 1
-                if f_new <= f + c1 * alpha * slope:
-                    accepted = (alpha * p, z_new, f_new, g_new, extra_new)
-                    break
-                alpha *= shrink
+            limit = max_step if quasi_newton else sd_length
+            if norm_p > limit or not quasi_newton:
+                p = p * (limit / norm_p)
+                norm_p = limit
+            accepted, n = _line_search(fun_grad, z, f, g, p, norm_p, xtol, c1)
+            nfev += n
             if accepted is not None:
                 break
             hinv = None                            # the quasi-Newton model failed: restart it
@@ -105,7 +99,31 @@ def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4
             v = np.eye(len(z)) - rho * np.outer(s, y)
             hinv = v @ hinv @ v.T + rho * np.outer(s, s)
         z, f, g, extra = z_new, f_new, g_new, extra_new
-        if np.linalg.norm(s) < xtol:
+        step = np.linalg.norm(s)
+        sd_length = min(max_step, max(2.0 * step, 10.0 * xtol))
+        if step < xtol:
             status = Status.STEP
             break
     return BfgsResult(z=z, fun=f, grad=g, extra=extra, status=status, nit=nit, nfev=nfev)
+
+
+def _line_search(fun_grad, z, f, g, p, norm_p, xtol, c1):
+    """Backtracking Armijo search along p with safeguarded quadratic interpolation.
+
+    Returns ((step, z_new, f_new, g_new, extra), evaluations), or (None, evaluations) when no
+    step longer than ``xtol`` decreases f enough.
+    """
+    slope = p @ g
+    alpha = 1.0
+    n = 0
+    while alpha * norm_p >= xtol:
+        z_new = z + alpha * p
+        f_new, g_new, extra_new = fun_grad(z_new)
+        n += 1
+        if f_new <= f + c1 * alpha * slope:
+            return (alpha * p, z_new, f_new, g_new, extra_new), n
+        # minimum of the quadratic through f(0), f'(0) and f(alpha), kept in [0.1, 0.5] * alpha
+        curvature = f_new - f - slope * alpha
+        trial = -slope * alpha * alpha / (2.0 * curvature) if curvature > 0.0 else 0.5 * alpha
+        alpha = min(max(trial, 0.1 * alpha), 0.5 * alpha)
+    return None, n

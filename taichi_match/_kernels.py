@@ -10,7 +10,7 @@ The kernels know nothing but arrays:
   coordinates: ``u = c0*j + c1*i + c2`` (column) and ``v = c3*j + c4*i + c5`` (row); A's cell is
   (floor(v), floor(u)). ``_cost.affine_coefficients`` builds it from eq. (2)-(5).
 
-Output is one partial sum and one count per (pose, row), written without atomics so the result is
+Output is one partial sum and (optionally) one count per (pose, row), written without atomics so the result is
 bit-identical run after run; the caller adds the rows in float64. Each row is summed in float32
 (at most a few thousand terms of size <= 1).
 
@@ -77,10 +77,10 @@ def _build_kernel(ti):
 
     @ti.kernel
     def discrepancy_rows(a: f32_2d, b: f32_2d, rows: i32_1d, lo: i32_1d, hi: i32_1d,
-                         affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
-                         out_sum: f32_2d, out_count: ti.types.ndarray(dtype=ti.i32, ndim=2)):
-        u_max = ti.f32(a.shape[1] - 1)
-        v_max = ti.f32(a.shape[0] - 1)
+                         affine: ti.types.ndarray(dtype=ti.f64, ndim=2), out_sum: f32_2d,
+                         out_count: ti.types.ndarray(dtype=ti.i32, ndim=2), with_count: ti.template()):
+        u_max = a.shape[1] - 1
+        v_max = a.shape[0] - 1
         for k, r in ti.ndrange(affine.shape[0], rows.shape[0]):
             i = rows[r]
             du = ti.f32(affine[k, 0])
@@ -90,15 +90,19 @@ def _build_kernel(ti):
             acc = ti.f32(0.0)
             cnt = 0
             for j in range(lo[r], hi[r]):
-                u = ti.min(ti.max(u0 + du * j, 0.0), u_max)     # clamp onto the unknown ring
-                v = ti.min(ti.max(v0 + dv * j, 0.0), v_max)
-                pa = a[ti.cast(v, ti.i32), ti.cast(u, ti.i32)]     # u, v >= 0: cast is floor
+                # float -> int truncates; anything below 0 or past the end is clamped onto the
+                # ring of unknown cells, so truncation toward zero is as good as floor here
+                iu = ti.min(ti.max(ti.cast(u0 + du * j, ti.i32), 0), u_max)
+                iv = ti.min(ti.max(ti.cast(v0 + dv * j, ti.i32), 0), v_max)
+                pa = a[iv, iu]
                 pb = b[i, j]
                 ok = (pa >= 0.0) & (pb >= 0.0)
                 acc += ti.select(ok, ti.abs(pa - pb), 0.0)
-                cnt += ti.select(ok, 1, 0)
+                if ti.static(with_count):
+                    cnt += ti.select(ok, 1, 0)
             out_sum[k, r] = acc
-            out_count[k, r] = cnt
+            if ti.static(with_count):
+                out_count[k, r] = cnt
 
     return discrepancy_rows
 
@@ -115,16 +119,17 @@ class TaichiEngine:
         self._lo = lo
         self._hi = hi
 
-    def __call__(self, affine):
-        """affine: (N, 6) float64. Returns (discrepancy float64 (N,), overlap int64 (N,))."""
+    def __call__(self, affine, with_count=True):
+        """affine: (N, 6) float64. Returns (discrepancy float64 (N,), overlap int64 (N,) or None)."""
         n = affine.shape[0]
         n_rows = self._rows.shape[0]
         if n_rows == 0:
-            return np.zeros(n), np.zeros(n, dtype=np.int64)
+            return np.zeros(n), (np.zeros(n, dtype=np.int64) if with_count else None)
         out_sum = np.empty((n, n_rows), dtype=np.float32)
-        out_count = np.empty((n, n_rows), dtype=np.int32)
+        out_count = np.zeros((n, n_rows) if with_count else (1, 1), dtype=np.int32)
         with _LOCK:
             kernel = ensure_initialized()
             kernel(self._a, self._b, self._rows, self._lo, self._hi, np.ascontiguousarray(affine, np.float64),
-                   out_sum, out_count)
-        return out_sum.sum(axis=1, dtype=np.float64), out_count.sum(axis=1, dtype=np.int64)
+                   out_sum, out_count, bool(with_count))
+        counts = out_count.sum(axis=1, dtype=np.int64) if with_count else None
+        return out_sum.sum(axis=1, dtype=np.float64), counts

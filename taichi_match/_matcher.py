@@ -182,31 +182,29 @@ class Matcher:
         launches = 0
         evaluations = 0
 
-        def evaluate(poses):
+        def evaluate(poses, with_count=True):
             nonlocal launches, evaluations
             launches += 1
             evaluations += len(poses)
-            return engine(poses)
+            return engine(poses, with_count)
 
         def fun_grad(z):
             r = z / scale
-            values, counts = evaluate(gradient_stencil(r, steps))
+            values, _ = evaluate(gradient_stencil(r, steps), with_count=False)
             p_val, p_grad = prior(r, r0, opts.prior_weight, opts.rotation_scale)
             grad = gradient_from_stencil(values, steps) + p_grad
-            return values[0] + p_val, grad / scale, (values[0], int(counts[0]))
+            return values[0] + p_val, grad / scale, values[0]
 
         max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
         _, overlap0 = evaluate(r0[None, :])
         if overlap0[0] == 0:
-            status, r, e, overlap, nit = Status.NO_OVERLAP, r0, 0.0, 0, 0
-            cost = 0.0
+            status, r, nit, cost = Status.NO_OVERLAP, r0, 0, 0.0
         else:
             res = minimize_bfgs(fun_grad, r0 * scale, max_step=max_step, xtol=opts.xtol * steps[0],
                                 gtol=opts.gtol * opts.prior_weight, max_iterations=opts.max_iterations)
-            r = res.z / scale
-            e, overlap = res.extra
-            status, nit, cost = res.status, res.nit, res.fun
-        values, _ = evaluate(hessian_stencil(r, steps))
+            r, status, nit, cost = res.z / scale, res.status, res.nit, res.fun
+        values, counts = evaluate(hessian_stencil(r, steps))
+        e, overlap = values[0], counts[0]
         information = hessian_from_stencil(values, steps)
         covariance, degenerate = covariance_from_hessian(information, opts.rotation_scale,
                                                          scale=opts.covariance_scale)

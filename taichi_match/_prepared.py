@@ -43,10 +43,14 @@ class PreparedMap:
 
 
 def make_engine(name, a: PreparedMap, b: PreparedMap):
-    """A callable ``poses (N, 3) -> (discrepancy (N,), overlap (N,))`` on the prepared maps."""
+    """A callable ``(poses (N, 3), with_count=True) -> (discrepancy (N,), overlap (N,) or None)``.
+
+    ``with_count=False`` lets an engine skip counting the cells compared (the overlap).
+    """
     if name == "taichi":
         kernel = TaichiEngine(a.padded, b.values, b.rows, b.lo, b.hi)
-        return lambda poses: kernel(affine_coefficients(poses, a.blurred, b.blurred))
+        return lambda poses, with_count=True: kernel(affine_coefficients(poses, a.blurred, b.blurred), with_count)
     if name == "numpy":
-        return NumpyDiscrepancy(a.blurred, b.blurred)
+        oracle = NumpyDiscrepancy(a.blurred, b.blurred)
+        return lambda poses, with_count=True: oracle(poses)
     raise ValueError(f"engine must be one of {ENGINES}; got {name!r}")

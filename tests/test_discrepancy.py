@@ -32,6 +32,22 @@ CASES = [  # shape_a, res_a, origin_a, shape_b, res_b, origin_b
 ]
 
 
+def boundary_ties(a, b, poses, tol=1e-4):
+    """Per pose, the known cells of B whose centre lands within ``tol`` cells of a cell boundary
+    of A: there float32 and float64 may legitimately floor differently."""
+    rows, cols = np.nonzero(b.known)
+    centres = b.cell_centres(rows, cols)
+    ties = []
+    for x, y, t in poses:
+        px = np.cos(t) * centres[:, 0] - np.sin(t) * centres[:, 1] + x
+        py = np.sin(t) * centres[:, 0] + np.cos(t) * centres[:, 1] + y
+        u = (px - a.origin[0]) / a.resolution
+        v = (py - a.origin[1]) / a.resolution
+        near = lambda w: np.abs(w - np.round(w)) < tol
+        ties.append(int(np.count_nonzero(near(u) | near(v))))
+    return np.array(ties)
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_kernel_matches_numpy_oracle_on_random_maps(case, rng):
     shape_a, res_a, origin_a, shape_b, res_b, origin_b = case
@@ -40,12 +56,14 @@ def test_kernel_matches_numpy_oracle_on_random_maps(case, rng):
     extent = max(shape_a) * res_a
     poses = np.column_stack([rng.uniform(-0.5, 0.5, 64) * extent, rng.uniform(-0.5, 0.5, 64) * extent,
                              rng.uniform(-np.pi, np.pi, 64)])
-    poses[0] = 0.0
+    poses[0] = 0.0          # commensurate grids at identity put many centres exactly on boundaries
     v_ti, n_ti = discrepancy(a, b, poses, return_overlap=True)
     v_np, n_np = discrepancy(a, b, poses, engine="numpy", return_overlap=True)
-    # float32 coordinates may move a point across a cell boundary: at most a couple of cells per pose
-    assert np.all(np.abs(n_ti - n_np) <= 2)
-    assert np.all(np.abs(v_ti - v_np) <= 2.0)
+    # float32 coordinates may move a point across a cell boundary: a couple of cells per pose,
+    # plus the cells that sit exactly on a boundary
+    allowed = 2 + boundary_ties(a, b, poses)
+    assert np.all(np.abs(n_ti - n_np) <= allowed)
+    assert np.all(np.abs(v_ti - v_np) <= allowed)
     assert np.mean(np.abs(v_ti - v_np) < 1e-3) > 0.8       # and mostly identical up to float32 sums
     assert n_np.max() > 0
 

@@ -75,14 +75,14 @@ def test_a_child_forked_after_initialisation_gets_an_error_not_a_hang():
 
 def test_maps_of_new_sizes_do_not_recompile(rng):
     a = random_map(rng, (30, 40), 0.1, (0.0, 0.0))
-    discrepancy(a, a, [(0.0, 0.0, 0.0)])
+    Matcher().match(a, a, (0.01, 0.0, 0.0))           # compiles both variants (with/without counts)
     kernel = _kernels.ensure_initialized()
     compiled = len(kernel._primal.compiled_kernels)
     for shape in ((17, 301), (480, 480), (5, 3)):
         b = random_map(rng, shape, 0.05, (-1.0, -1.0))
         discrepancy(a, b, rng.uniform(-1, 1, (7, 3)))
         Matcher().match(b, b, (0.01, 0.0, 0.0))
-    assert len(kernel._primal.compiled_kernels) == compiled == 1
+    assert len(kernel._primal.compiled_kernels) == compiled <= 2
 
 
 def test_matcher_caches_prepared_maps_per_blur():
