@@ -57,10 +57,13 @@ class BfgsResult:
     nfev: int
 
 
-def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4):
-    """Minimise ``fun_grad(z) -> (f, g, extra)`` from z0; see the module docstring."""
+def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4, first=None):
+    """Minimise ``fun_grad(z) -> (f, g, extra)`` from z0; see the module docstring.
+
+    ``first`` may hold ``fun_grad(z0)`` when the caller has already evaluated it.
+    """
     z = np.asarray(z0, dtype=np.float64).copy()
-    f, g, extra = fun_grad(z)
+    f, g, extra = first if first is not None else fun_grad(z)
     nfev = 1
     hinv = None                                    # None: steepest descent with a capped step
     sd_length = max_step                           # steepest-descent step: last accepted length

@@ -188,21 +188,25 @@ class Matcher:
             evaluations += len(poses)
             return engine(poses, with_count)
 
-        def fun_grad(z):
-            r = z / scale
-            values, _ = evaluate(gradient_stencil(r, steps), with_count=False)
+        def cost(r, with_count=False):
+            """h (eq. 8) and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
+            values, counts = evaluate(gradient_stencil(r, steps), with_count)
             p_val, p_grad = prior(r, r0, opts.prior_weight, opts.rotation_scale)
-            grad = gradient_from_stencil(values, steps) + p_grad
-            return values[0] + p_val, grad / scale, values[0]
+            return values[0] + p_val, gradient_from_stencil(values, steps) + p_grad, counts
+
+        def fun_grad(z):                     # in scaled coordinates z = r * scale
+            h, grad, _ = cost(z / scale)
+            return h, grad / scale, None
 
         max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
-        _, overlap0 = evaluate(r0[None, :])
-        if overlap0[0] == 0:
-            status, r, nit, cost = Status.NO_OVERLAP, r0, 0, 0.0
+        h0, grad0, counts0 = cost(r0, with_count=True)
+        if counts0[0] == 0:
+            status, r, nit, cost_value = Status.NO_OVERLAP, r0, 0, h0
         else:
             res = minimize_bfgs(fun_grad, r0 * scale, max_step=max_step, xtol=opts.xtol * steps[0],
-                                gtol=opts.gtol * opts.prior_weight, max_iterations=opts.max_iterations)
-            r, status, nit, cost = res.z / scale, res.status, res.nit, res.fun
+                                gtol=opts.gtol * opts.prior_weight, max_iterations=opts.max_iterations,
+                                first=(h0, grad0 / scale, None))
+            r, status, nit, cost_value = res.z / scale, res.status, res.nit, res.fun
         values, counts = evaluate(hessian_stencil(r, steps))
         e, overlap = values[0], counts[0]
         information = hessian_from_stencil(values, steps)
@@ -211,7 +215,7 @@ class Matcher:
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
         return MatchResult(
             pose=pose, covariance=covariance, information=information, degenerate=degenerate,
-            cost=float(cost), discrepancy=float(e), overlap=int(overlap), initial_pose=r0,
+            cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), initial_pose=r0,
             iterations=nit, evaluations=evaluations, launches=launches, converged=status.converged,
             status=status, message=MESSAGES[status], seconds=time.perf_counter() - start, options=opts)
 

@@ -33,9 +33,7 @@ class PreparedMap:
         rows = np.flatnonzero(known.any(axis=1))
         first = known[rows].argmax(axis=1)
         last = known.shape[1] - known[rows][:, ::-1].argmax(axis=1)
-        self.rows = rows.astype(np.int32)
-        self.lo = first.astype(np.int32)
-        self.hi = last.astype(np.int32)
+        self.rows = np.ascontiguousarray(np.column_stack([rows, first, last]), dtype=np.int32)  # (R, 3)
         self.n_known = int(known.sum())
 
     def __repr__(self):
@@ -48,7 +46,7 @@ def make_engine(name, a: PreparedMap, b: PreparedMap):
     ``with_count=False`` lets an engine skip counting the cells compared (the overlap).
     """
     if name == "taichi":
-        kernel = TaichiEngine(a.padded, b.values, b.rows, b.lo, b.hi)
+        kernel = TaichiEngine(a.padded, b.values, b.rows)
         return lambda poses, with_count=True: kernel(affine_coefficients(poses, a.blurred, b.blurred), with_count)
     if name == "numpy":
         oracle = NumpyDiscrepancy(a.blurred, b.blurred)
