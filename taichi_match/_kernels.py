@@ -156,9 +156,26 @@ class TaichiEngine:
         n_rows = self._rows.shape[0]
         if n_rows == 0:
             return np.zeros(n), (np.zeros(n, dtype=np.int64) if with_count else None)
+        affine = self._clear_poses_outside(np.array(affine, dtype=np.float64, order="C"))
         out = np.empty((2 if with_count else 1, n, n_rows), dtype=np.float32)
         with _LOCK:
             kernel = ensure_initialized()
-            kernel(self._a, self._b, self._rows, np.ascontiguousarray(affine, np.float64), out, bool(with_count))
+            kernel(self._a, self._b, self._rows, affine, out, bool(with_count))
         counts = out[1].sum(axis=1, dtype=np.float64).astype(np.int64) if with_count else None
         return out[0].sum(axis=1, dtype=np.float64), counts
+
+    def _clear_poses_outside(self, affine):
+        """Send poses that put all of B outside A to A's unknown ring (u = v = 0).
+
+        Their discrepancy is 0 either way; this keeps every coordinate the kernel converts to
+        int32 within range, however far away a pose is.
+        """
+        rows, cols = self._b.shape
+        j = np.array([0.0, cols, 0.0, cols])
+        i = np.array([0.0, 0.0, rows, rows])
+        u = affine[:, 0:1] * j + affine[:, 1:2] * i + affine[:, 2:3]
+        v = affine[:, 3:4] * j + affine[:, 4:5] * i + affine[:, 5:6]
+        outside = ((u.max(axis=1) < 0) | (u.min(axis=1) > self._a.shape[1])
+                   | (v.max(axis=1) < 0) | (v.min(axis=1) > self._a.shape[0]))
+        affine[outside] = 0.0
+        return affine

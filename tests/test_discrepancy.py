@@ -76,6 +76,15 @@ def test_identical_maps_give_zero_at_identity(rng):
         assert overlap[0] == a.known.sum()
 
 
+def test_far_away_poses_give_zero_without_overflow(rng):
+    a = random_map(rng, (40, 40), 0.05, (0.0, 0.0))
+    poses = [(1e12, 0.0, 0.0), (0.0, -3e9, 1.0), (2e7, 2e7, -2.0), (2.5, 2.5, 0.0), (0.0, 0.0, 0.0)]
+    for engine in ("taichi", "numpy"):
+        values, overlap = discrepancy(a, a, poses, engine=engine, return_overlap=True)
+        assert values[:4].tolist() == [0.0] * 4 and overlap[:4].tolist() == [0] * 4
+        assert values[4] == 0.0 and overlap[4] == a.known.sum()
+
+
 def test_discrepancy_is_deterministic(rng):
     a = random_map(rng, (200, 150), 0.05, (-5, -4))
     poses = rng.uniform(-1, 1, (25, 3))
