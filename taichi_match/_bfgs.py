@@ -14,6 +14,11 @@ alignment it has a kink. Stopping rules therefore do not wait for a zero gradien
 - ``NO_DESCENT``: neither the quasi-Newton nor the steepest-descent direction decreases the cost by
   a step longer than ``xtol``: a minimum at the resolution of the cost (a kink or a floor step);
 - ``MAX_ITERATIONS``: the iteration budget ran out (not converged).
+
+Gradient methods zig-zag along a kinked valley: in a corridor the prior pulls along the valley
+floor while the stencil gradient is dominated by the kink across it, and BFGS then crawls.
+``polish`` finishes with a compass search (Kolda, Lewis & Torczon 2003) that needs no gradient:
+each launch tries the six axis directions at three step lengths at once.
 """
 
 import enum
@@ -21,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Status", "BfgsResult", "minimize_bfgs"]
+__all__ = ["Status", "BfgsResult", "minimize_bfgs", "polish"]
 
 
 class Status(enum.IntEnum):
@@ -130,3 +135,29 @@ def _line_search(fun_grad, z, f, g, p, norm_p, xtol, c1):
         trial = -slope * alpha * alpha / (2.0 * curvature) if curvature > 0.0 else 0.5 * alpha
         alpha = min(max(trial, 0.1 * alpha), 0.5 * alpha)
     return None, n
+
+
+def polish(values, z, f, *, step, xtol, max_step, max_launches=20):
+    """Compass search from z: move to the best of +-step along each axis while that lowers f.
+
+    ``values(Z) -> f`` evaluates a batch of points in one launch. Each launch tries the six axis
+    directions at lengths step * 4**-k, k = 0..2 (those >= xtol); on success the step doubles
+    from the length that won, otherwise it goes on below the shortest length tried, until the
+    step is shorter than xtol. Returns (z, f, launches).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    directions = np.vstack([np.eye(len(z)), -np.eye(len(z))])
+    launches = 0
+    while step >= xtol and launches < max_launches:
+        lengths = step * 0.25 ** np.arange(3)
+        lengths = lengths[lengths >= xtol]
+        trials = (z + lengths[:, None, None] * directions[None, :, :]).reshape(-1, len(z))
+        f_trials = values(trials)
+        launches += 1
+        best = int(np.argmin(f_trials))
+        if f_trials[best] < f:
+            z, f = trials[best], float(f_trials[best])
+            step = min(2.0 * lengths[best // len(directions)], max_step)
+        else:
+            step = 0.25 * lengths[-1]
+    return z, f, launches

@@ -14,7 +14,7 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ._bfgs import MESSAGES, Status, minimize_bfgs
+from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior
 from ._covariance import covariance_from_hessian
 from ._errors import InvalidMapError
@@ -198,6 +198,11 @@ class Matcher:
             h, grad, _ = cost(z / scale)
             return h, grad / scale, None
 
+        def values(zs):                      # h at a batch of points, one launch
+            rs = zs / scale
+            e_values, _ = evaluate(rs, with_count=False)
+            return e_values + np.array([prior(r, r0, opts.prior_weight, opts.rotation_scale)[0] for r in rs])
+
         max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
         h0, grad0, counts0 = cost(r0, with_count=True)
         if counts0[0] == 0:
@@ -206,7 +211,9 @@ class Matcher:
             res = minimize_bfgs(fun_grad, r0 * scale, max_step=max_step, xtol=opts.xtol * steps[0],
                                 gtol=opts.gtol * opts.prior_weight, max_iterations=opts.max_iterations,
                                 first=(h0, grad0 / scale, None))
-            r, status, nit, cost_value = res.z / scale, res.status, res.nit, res.fun
+            z, cost_value, _ = polish(values, res.z, res.fun, step=4.0 * steps[0], xtol=opts.xtol * steps[0],
+                                      max_step=max_step)
+            r, status, nit = z / scale, res.status, res.nit
         values, counts = evaluate(hessian_stencil(r, steps))
         e, overlap = values[0], counts[0]
         information = hessian_from_stencil(values, steps)

@@ -92,3 +92,17 @@ def test_matcher_caches_prepared_maps_per_blur():
     assert m.prepare(grid) is first
     assert m.prepare(grid, blur=0.3) is not first
     assert m.prepare(grid, blur=0.3).blur_width == 0.3
+
+
+def test_same_inputs_give_bit_identical_poses_across_processes():
+    code = """
+        import numpy as np
+        import taichi_match as tm
+        from taichi_match.scenes import corridor
+        a = corridor()
+        res = tm.match(a, a, (0.7, -0.9, 0.25))
+        print(" ".join(float(v).hex() for v in np.concatenate([res.pose, res.covariance.ravel()])))
+    """
+    first, second = run_python(code), run_python(code)
+    assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
+    assert first.stdout == second.stdout and first.stdout.strip()

@@ -35,12 +35,14 @@ def test_corridor_builder_geometry(corridor_map):
 def test_paper_table_1_on_the_corridor(corridor_map, matcher, ranges, required):
     """The paper's protocol: 100 seeded initial poses; success is |y| < 0.025 m, |theta| < 0.045."""
     rng = np.random.default_rng(2010)
-    ok = 0
+    ok = closest = 0
     for _ in range(100):
         r0 = rng.uniform(-1.0, 1.0, 3) * ranges
         res = matcher.match(corridor_map, corridor_map, r0)
         ok += abs(res.pose[1]) < 0.025 and abs(res.pose[2]) < 0.045
+        closest += abs(res.pose[0] - r0[0]) < 0.025      # the paper: the closest pose along the corridor
     assert ok >= required
+    assert closest >= required
 
 
 def test_corridor_covariance_is_long_along_the_corridor(corridor_map, matcher):
@@ -136,3 +138,13 @@ def test_bad_maps_and_options():
                 dict(max_iterations=-1), dict(step=0.0), dict(engine="cuda"), dict(max_iterations=2.5)):
         with pytest.raises(ValueError):
             match(a, a, (0, 0, 0), **bad)
+
+
+def test_evaluation_counts_stay_small_on_a_fixed_problem(corridor_map, matcher):
+    """A regression pin on a fixed start; along the corridor the answer is the closest pose to r0."""
+    res = matcher.match(corridor_map, corridor_map, (0.9, -1.2, 0.3))
+    assert res.converged
+    assert abs(res.pose[0] - 0.9) < 0.01
+    assert res.iterations <= 30
+    assert res.launches <= 2 * res.iterations + 15
+    assert 13 * res.launches <= res.evaluations <= 25 * res.launches
