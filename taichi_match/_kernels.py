@@ -24,6 +24,7 @@ was initialised gets an error instead of the hang Taichi would give.
 import contextlib
 import io
 import os
+import sys
 import threading
 import warnings
 
@@ -34,7 +35,21 @@ from ._errors import EngineError
 __all__ = ["TaichiEngine", "ensure_initialized"]
 
 _LOCK = threading.RLock()
-_STATE = {"ti": None, "kernel": None, "init_pid": None}
+_STATE = {"ti": None, "kernel": None, "forked": False}
+
+
+def _after_fork_in_child():
+    """Remember that this process was forked while Taichi (ours or the host's) was running."""
+    ti = sys.modules.get("taichi")
+    try:
+        if ti is not None and ti.lang.impl.get_runtime().prog is not None:
+            _STATE["forked"] = True
+    except Exception:  # pragma: no cover - a half-imported taichi
+        _STATE["forked"] = True
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def _import_taichi():
@@ -52,6 +67,11 @@ def _import_taichi():
 def ensure_initialized():
     """Initialise Taichi on the CPU once (or adopt the host's runtime) and build the kernel."""
     with _LOCK:
+        if _STATE["forked"]:
+            raise EngineError(
+                "Taichi was initialised in a parent process before this one was forked; Taichi kernels "
+                "hang in a forked child. Start worker processes with the 'spawn' or 'forkserver' method "
+                "(multiprocessing.get_context('spawn')), or use the engine only in the children.")
         ti = _import_taichi()
         runtime = ti.lang.impl.get_runtime()
         if runtime.prog is None:
@@ -60,16 +80,8 @@ def ensure_initialized():
                 warnings.simplefilter("ignore", DeprecationWarning)
                 ti.init(arch=ti.cpu, cpu_max_num_threads=len(_allowed_cpus()), offline_cache=True,
                         log_level=ti.WARN)
-            _STATE["init_pid"] = os.getpid()
             if os.environ.get("TAICHI_MATCH_PIN_THREADS", "1") != "0":
                 _pin_threads(sorted(_thread_ids() - before))
-        elif _STATE["init_pid"] is None:
-            _STATE["init_pid"] = os.getpid()     # the host initialised Taichi in this process
-        if _STATE["init_pid"] != os.getpid():
-            raise EngineError(
-                "Taichi was initialised in a parent process before this one was forked; Taichi kernels "
-                "hang in a forked child. Start worker processes with the 'spawn' or 'forkserver' method "
-                "(multiprocessing.get_context('spawn')), or use the engine only in the children.")
         if _STATE["kernel"] is None:
             _STATE["kernel"] = _build_kernel(ti)
         return _STATE["kernel"]

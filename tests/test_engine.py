@@ -73,6 +73,28 @@ def test_a_child_forked_after_initialisation_gets_an_error_not_a_hang():
     assert out.returncode == 0, (out.returncode, out.stderr)
 
 
+def test_a_child_forked_after_the_host_initialised_taichi_gets_an_error():
+    out = run_python("""
+        import contextlib, io, os
+        import numpy as np
+        with contextlib.redirect_stdout(io.StringIO()):
+            import taichi as ti
+            ti.init(arch=ti.cpu)
+        import taichi_match as tm
+        a = tm.GridMap(np.zeros((30, 30)), 0.1)
+        pid = os.fork()
+        if pid == 0:
+            try:
+                tm.discrepancy(a, a, [(0.0, 0.0, 0.0)])
+            except tm.EngineError:
+                os._exit(0)
+            os._exit(2)
+        _, status = os.waitpid(pid, 0)
+        raise SystemExit(os.waitstatus_to_exitcode(status))
+    """)
+    assert out.returncode == 0, (out.returncode, out.stderr)
+
+
 def test_maps_of_new_sizes_do_not_recompile(rng):
     a = random_map(rng, (30, 40), 0.1, (0.0, 0.0))
     Matcher().match(a, a, (0.01, 0.0, 0.0))           # compiles both variants (with/without counts)
@@ -106,3 +128,17 @@ def test_same_inputs_give_bit_identical_poses_across_processes():
     first, second = run_python(code), run_python(code)
     assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
     assert first.stdout == second.stdout and first.stdout.strip()
+
+
+def test_matches_from_several_threads_equal_serial_ones():
+    from concurrent.futures import ThreadPoolExecutor
+
+    from taichi_match.scenes import corridor
+
+    grid = corridor(size=6.0, resolution=0.05, width=3.0)
+    starts = np.random.default_rng(4).uniform(-1, 1, (8, 3)) * (0.5, 0.5, 0.2)
+    matcher = Matcher()
+    serial = [matcher.match(grid, grid, r0).pose for r0 in starts]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        threaded = list(pool.map(lambda r0: matcher.match(grid, grid, r0).pose, starts))
+    assert all(np.array_equal(s, t) for s, t in zip(serial, threaded))
