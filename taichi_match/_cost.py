@@ -11,7 +11,7 @@ import numpy as np
 from ._grid import GridMap
 
 __all__ = [
-    "affine_coefficients", "prior", "gradient_stencil", "gradient_from_stencil",
+    "affine_coefficients", "prior", "prior_values", "gradient_stencil", "gradient_from_stencil",
     "hessian_stencil", "hessian_from_stencil",
 ]
 
@@ -56,27 +56,30 @@ def prior(pose, initial_pose, weight, rotation_scale):
     return weight * norm, weight * w * d / norm
 
 
+def prior_values(poses, initial_pose, weight, rotation_scale):
+    """K * ||r - r0|| (eq. 7-8) for an (N, 3) batch of poses."""
+    d = np.asarray(poses, dtype=np.float64) - initial_pose
+    return weight * np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + (rotation_scale * d[:, 2]) ** 2)
+
+
 # ---------------------------------------------------------------------------------------------
 # Eq. (10): four-point central differences for the gradient.
 
 _GRAD_OFFSETS = (-2.0, -1.0, 1.0, 2.0)
 _GRAD_WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
+# (13, 3) offsets in units of the steps: the centre, then -2, -1, +1, +2 along x, y, theta
+_GRAD_STENCIL = np.vstack([np.zeros(3)] + [np.outer(_GRAD_OFFSETS, np.eye(3)[d]) for d in range(3)])
 
 
 def gradient_stencil(pose, steps):
     """(13, 3) poses: the centre, then for x, y, theta the offsets -2, -1, +1, +2 steps."""
-    pose = np.asarray(pose, dtype=np.float64)
-    out = np.repeat(pose[None, :], 13, axis=0)
-    for d in range(3):
-        for m, k in enumerate(_GRAD_OFFSETS):
-            out[1 + 4 * d + m, d] += k * steps[d]
-    return out
+    return np.asarray(pose, dtype=np.float64) + _GRAD_STENCIL * steps
 
 
 def gradient_from_stencil(values, steps):
     """Eq. (10) from the 13 values of ``gradient_stencil``."""
     values = np.asarray(values, dtype=np.float64)
-    return np.array([_GRAD_WEIGHTS @ values[1 + 4 * d: 5 + 4 * d] / steps[d] for d in range(3)])
+    return values[1:13].reshape(3, 4) @ _GRAD_WEIGHTS / steps
 
 
 # ---------------------------------------------------------------------------------------------
@@ -86,21 +89,14 @@ _PAIRS = ((0, 1), (0, 2), (1, 2))
 _CROSS_SIGNS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
 _CROSS_WEIGHTS = np.array([1.0, -1.0, -1.0, 1.0]) / 4.0
 _DIAG_WEIGHTS = np.array([-1.0, 16.0, 16.0, -1.0]) / 12.0     # at -2, -1, +1, +2 steps; centre -30/12
+# (25, 3) offsets: the 13 of the gradient stencil, then 4 corners for each pair (x,y), (x,t), (y,t)
+_HESS_STENCIL = np.vstack([_GRAD_STENCIL] + [
+    np.array([s1 * np.eye(3)[d1] + s2 * np.eye(3)[d2] for s1, s2 in _CROSS_SIGNS]) for d1, d2 in _PAIRS])
 
 
 def hessian_stencil(pose, steps):
     """(25, 3) poses: the 13 of ``gradient_stencil``, then 4 corners for each pair (x,y), (x,t), (y,t)."""
-    pose = np.asarray(pose, dtype=np.float64)
-    out = np.empty((25, 3))
-    out[:13] = gradient_stencil(pose, steps)
-    row = 13
-    for d1, d2 in _PAIRS:
-        for s1, s2 in _CROSS_SIGNS:
-            out[row] = pose
-            out[row, d1] += s1 * steps[d1]
-            out[row, d2] += s2 * steps[d2]
-            row += 1
-    return out
+    return np.asarray(pose, dtype=np.float64) + _HESS_STENCIL * steps
 
 
 def hessian_from_stencil(values, steps):

@@ -1,8 +1,8 @@
 """The public face: options, the result, and the matcher that ties the steps together.
 
 Data flows one way: maps -> prepared (blurred) maps -> batched evaluation of eq. (6) ->
-cost h (eq. 8) with its stencil gradient (eq. 10) -> BFGS (eq. 9) -> Hessian (eq. 12) ->
-covariance (eq. 11).
+cost h (eq. 8) with its stencil gradient (eq. 10) -> BFGS (eq. 9), finished by a compass-search
+polish -> Hessian (eq. 12) -> covariance (eq. 11).
 """
 
 import dataclasses
@@ -15,7 +15,8 @@ from typing import Literal, Optional
 import numpy as np
 
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
-from ._cost import gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior
+from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior,
+                    prior_values)
 from ._covariance import covariance_from_hessian
 from ._errors import InvalidMapError
 from ._grid import GridMap
@@ -34,7 +35,7 @@ class MatchOptions:
     rotation_scale : L of eq. (7), metres per radian.
     step : finite-difference step eps for x and y (eq. 10-12), metres; None = A's resolution.
     rotation_step : eps for theta, radians; None = step / rotation_scale.
-    max_step : longest BFGS step in scaled units (metres), None = blur / 2.
+    max_step : longest BFGS step in scaled units (metres), None = max(blur / 2, 4 * step).
     xtol : the optimiser stops when a step is shorter than xtol * step.
     gtol : ... or when the gradient norm of h is below gtol * prior_weight.
     max_iterations : BFGS iteration budget.
@@ -198,10 +199,10 @@ class Matcher:
             h, grad, _ = cost(z / scale)
             return h, grad / scale, None
 
-        def values(zs):                      # h at a batch of points, one launch
+        def cost_batch(zs):                  # h at a batch of points, one launch (for the polish)
             rs = zs / scale
             e_values, _ = evaluate(rs, with_count=False)
-            return e_values + np.array([prior(r, r0, opts.prior_weight, opts.rotation_scale)[0] for r in rs])
+            return e_values + prior_values(rs, r0, opts.prior_weight, opts.rotation_scale)
 
         max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
         h0, grad0, counts0 = cost(r0, with_count=True)
@@ -211,7 +212,7 @@ class Matcher:
             res = minimize_bfgs(fun_grad, r0 * scale, max_step=max_step, xtol=opts.xtol * steps[0],
                                 gtol=opts.gtol * opts.prior_weight, max_iterations=opts.max_iterations,
                                 first=(h0, grad0 / scale, None))
-            z, cost_value, _ = polish(values, res.z, res.fun, step=4.0 * steps[0], xtol=opts.xtol * steps[0],
+            z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=4.0 * steps[0], xtol=opts.xtol * steps[0],
                                       max_step=max_step)
             r, status, nit = z / scale, res.status, res.nit
         values, counts = evaluate(hessian_stencil(r, steps))
