@@ -29,13 +29,15 @@ def _demo(args):
     print("covariance (x, y, theta):")
     print(res.covariance)
     for d in res.degenerate:
-        print(f"degenerate direction (no information): {np.round(d, 4)}")
+        dx, dy, dt = np.round(d, 4) + 0.0
+        print(f"degenerate direction (no information): ({dx:+.4f}, {dy:+.4f}, {dt:+.4f}) in (x, y, theta)")
     print(f"time          {1e3 * res.seconds:.1f} ms (the paper: about 6 s)")
     return 0 if res.converged else 1
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="taichi-match", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="taichi-match", description="Relative pose between overlapping occupancy grid maps.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="match the paper's corridor against a copy of itself")
     demo.add_argument("--initial", nargs=3, type=float, metavar=("X", "Y", "THETA"), default=(0.8, -1.1, 0.3),
