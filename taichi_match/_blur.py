@@ -1,44 +1,61 @@
 """Blurring a map once before matching (sec. 3.2 of the paper).
 
 The paper applies "a standard blurring algorithm that introduces a gradient of grey from black
-(occupied) to white (free) cells". We use a linear ramp in the Euclidean distance to the nearest
-occupied cell::
+(occupied) to white (free) cells" and leaves the choice open. Two are offered:
 
-    p'(c) = max(p(c), p(o) * max(0, 1 - d(c, o) / width))      for known c,
-    p'(c) = NaN                                                 for unknown c,
+``"gaussian"`` (the default): a Gaussian of standard deviation ``width`` metres, normalised over
+the known cells (normalised convolution)::
 
-where o is the occupied cell (p >= ``occupied``) nearest to c and d the distance between cell
-centres in metres. Occupied cells keep their value, free cells within ``width`` of an obstacle turn
-grey, unknown cells stay unknown.
+    p'(c) = sum_k G(c - k) p(k) / sum_k G(c - k)      over known cells k, for known c,
 
-Why a linear ramp: the discrepancy (eq. 6) is an L1 distance, and the L1 distance between a
-monotone profile and its copy shifted by d is |d| times the profile's total variation. A ramp
-keeps the slope of e against a misalignment constant up to ``width`` (the basin of convergence)
-instead of the few cells of the raw map, and keeps it steep at the minimum, so the prior
-K * ||r - r0|| (eq. 8) cannot drag the answer off the true alignment. A Gaussian blur of thin
-walls lowers their peak and flattens the slope near the minimum. The default width is measured
-in ``bench/tune_defaults.py`` (see the README).
+unknown cells stay unknown and do not pull the grey level toward any value. It is linear, so a
+stray occupied cell (a speckle, clutter that differs between two maps) adds only a faint smudge.
+
+``"ramp"``: a linear ramp in the distance to the nearest occupied cell (p >= ``occupied``)::
+
+    p'(c) = max(p(c), p(o) * max(0, 1 - d(c, o) / width))
+
+It keeps walls at full strength and gives e a constant slope out to ``width``, but every stray
+occupied cell becomes a full-height cone ``width`` wide, so on noisy maps the discrepancy floor
+rises until moving the maps apart (zero overlap) is cheaper than aligning them.
+
+The measurements behind the default are in ``bench/TUNING.md``.
 """
+
+from typing import Literal
 
 import numpy as np
 from scipy import ndimage
 
 from ._grid import GridMap
 
-__all__ = ["blur"]
+__all__ = ["blur", "BLUR_KINDS"]
+
+BLUR_KINDS = ("gaussian", "ramp")
 
 
-def blur(grid: GridMap, width: float, *, occupied: float = 0.5) -> GridMap:
-    """Return ``grid`` with a grey ramp of ``width`` metres spread from occupied into known cells."""
+def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp"] = "gaussian",
+         occupied: float = 0.5) -> GridMap:
+    """Return ``grid`` blurred with ``width`` metres (see the module docstring); unknown stays NaN."""
     width = float(width)
     if not np.isfinite(width) or width < 0.0:
         raise ValueError(f"blur width must be a finite number of metres >= 0; got {width}")
-    prob = grid.prob
-    occ = np.nan_to_num(prob, nan=0.0) >= occupied
-    if width == 0.0 or not occ.any():
+    if kind not in BLUR_KINDS:
+        raise ValueError(f"blur kind must be one of {BLUR_KINDS}; got {kind!r}")
+    if width == 0.0:
         return grid
-    dist, (ri, ci) = ndimage.distance_transform_edt(~occ, return_indices=True)
-    ramp = prob[ri, ci] * np.clip(1.0 - dist * grid.resolution / width, 0.0, None)
-    out = np.fmax(prob, ramp)          # fmax keeps a finite ramp over NaN, so restore unknowns:
-    out[np.isnan(prob)] = np.nan
+    prob = grid.prob
+    unknown = np.isnan(prob)
+    if kind == "gaussian":
+        sigma = width / grid.resolution
+        num = ndimage.gaussian_filter(np.where(unknown, 0.0, prob), sigma, mode="constant", truncate=3.0)
+        den = ndimage.gaussian_filter((~unknown).astype(np.float64), sigma, mode="constant", truncate=3.0)
+        out = np.clip(num / np.maximum(den, 1e-300), 0.0, 1.0)
+    else:
+        occ = np.nan_to_num(prob, nan=0.0) >= occupied
+        if not occ.any():
+            return grid
+        dist, (ri, ci) = ndimage.distance_transform_edt(~occ, return_indices=True)
+        out = np.fmax(prob, prob[ri, ci] * np.clip(1.0 - dist * grid.resolution / width, 0.0, None))
+    out[unknown] = np.nan
     return grid.with_prob(out)

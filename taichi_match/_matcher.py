@@ -14,6 +14,7 @@ from typing import Literal, Optional
 
 import numpy as np
 
+from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior,
                     prior_values)
@@ -30,7 +31,9 @@ __all__ = ["MatchOptions", "MatchResult", "Matcher", "match"]
 class MatchOptions:
     """Settings of a match. Units: metres, radians; K in discrepancy units per metre.
 
-    blur : width of the grey ramp spread from occupied cells (sec. 3.2), metres.
+    blur : width of the blur (sec. 3.2), metres: the Gaussian's standard deviation, or the ramp's
+        length for ``blur_kind="ramp"``.
+    blur_kind : "gaussian" (normalised convolution over known cells) or "ramp" (see ``_blur``).
     prior_weight : K of eq. (8), discrepancy (cells x probability) per metre of ||r - r0||.
     rotation_scale : L of eq. (7), metres per radian.
     step : finite-difference step eps for x and y (eq. 10-12), metres; None = A's resolution.
@@ -43,7 +46,8 @@ class MatchOptions:
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
     """
 
-    blur: float = 1.5
+    blur: float = 0.5
+    blur_kind: Literal["gaussian", "ramp"] = "gaussian"
     prior_weight: float = 100.0
     rotation_scale: float = 3.0
     step: Optional[float] = None
@@ -65,6 +69,8 @@ class MatchOptions:
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, (int, np.integer)) \
                 or self.max_iterations < 0:
             raise ValueError(f"max_iterations must be an integer >= 0; got {self.max_iterations!r}")
+        if self.blur_kind not in BLUR_KINDS:
+            raise ValueError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {ENGINES}; got {self.engine!r}")
 
@@ -152,21 +158,22 @@ class Matcher:
     def __init__(self, options: Optional[MatchOptions] = None, **overrides):
         options = options if options is not None else MatchOptions()
         self.options = dataclasses.replace(options, **overrides) if overrides else options
-        self._cache = weakref.WeakKeyDictionary()      # GridMap -> {blur width: PreparedMap}
+        self._cache = weakref.WeakKeyDictionary()      # GridMap -> {(blur, kind): PreparedMap}
         self._lock = threading.Lock()
 
-    def prepare(self, grid: GridMap, blur: Optional[float] = None) -> PreparedMap:
-        """Blur ``grid`` once (cached for as long as the map lives)."""
+    def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None) -> PreparedMap:
+        """Blur ``grid`` once (cached per blur for as long as the map lives)."""
         if not isinstance(grid, GridMap):
             raise InvalidMapError(f"expected a GridMap; got {type(grid).__name__}")
-        width = self.options.blur if blur is None else float(blur)
+        key = (self.options.blur if blur is None else float(blur),
+               self.options.blur_kind if blur_kind is None else blur_kind)
         with self._lock:
             per_map = self._cache.setdefault(grid, {})
-            prepared = per_map.get(width)
+            prepared = per_map.get(key)
         if prepared is None:
-            prepared = PreparedMap(grid, width)
+            prepared = PreparedMap(grid, *key)
             with self._lock:
-                prepared = per_map.setdefault(width, prepared)
+                prepared = per_map.setdefault(key, prepared)
         return prepared
 
     def match(self, a: GridMap, b: GridMap, initial_pose, **overrides) -> MatchResult:
@@ -175,8 +182,8 @@ class Matcher:
         opts = dataclasses.replace(self.options, **overrides) if overrides else self.options
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
-        prep_a = self.prepare(a, opts.blur)
-        prep_b = self.prepare(b, opts.blur)
+        prep_a = self.prepare(a, opts.blur, opts.blur_kind)
+        prep_b = self.prepare(b, opts.blur, opts.blur_kind)
         engine = make_engine(opts.engine, prep_a, prep_b)
         steps = opts.steps(a.resolution)
         scale = np.array([1.0, 1.0, opts.rotation_scale])          # z = r * scale, all in metres

@@ -20,12 +20,13 @@ _UNKNOWN = np.float32(-1.0)
 
 
 class PreparedMap:
-    """``grid`` blurred with a ramp of ``blur_width`` metres, with engine-ready arrays."""
+    """``grid`` blurred (``blur_kind``, ``blur_width`` metres), with engine-ready arrays."""
 
-    def __init__(self, grid: GridMap, blur_width: float):
+    def __init__(self, grid: GridMap, blur_width: float, blur_kind: str = "gaussian"):
         self.grid = grid
         self.blur_width = float(blur_width)
-        self.blurred = blur(grid, blur_width)
+        self.blur_kind = blur_kind
+        self.blurred = blur(grid, blur_width, kind=blur_kind)
         values = np.where(np.isnan(self.blurred.prob), _UNKNOWN, self.blurred.prob).astype(np.float32)
         self.padded = np.pad(values, 1, constant_values=_UNKNOWN)          # role A
         self.values = np.ascontiguousarray(values)                         # role B
@@ -37,7 +38,7 @@ class PreparedMap:
         self.n_known = int(known.sum())
 
     def __repr__(self):
-        return f"PreparedMap({self.grid!r}, blur_width={self.blur_width} m)"
+        return f"PreparedMap({self.grid!r}, blur {self.blur_kind} {self.blur_width} m)"
 
 
 def make_engine(name, a: PreparedMap, b: PreparedMap):

@@ -1,10 +1,10 @@
-"""Synthetic scenes of the paper's experiments (sec. 5)."""
+"""Synthetic scenes of the paper's experiments (sec. 5) and noise for them."""
 
 import numpy as np
 
 from ._grid import GridMap
 
-__all__ = ["corridor"]
+__all__ = ["corridor", "parallel_corridors_y", "noisy_copy"]
 
 
 def corridor(*, size=12.0, resolution=0.025, width=6.0, wall=0.05, free=0.0, occupied=1.0):
@@ -23,3 +23,26 @@ def corridor(*, size=12.0, resolution=0.025, width=6.0, wall=0.05, free=0.0, occ
     row[(np.abs(y) >= half) & (np.abs(y) < half + wall)] = occupied
     prob = np.repeat(row[:, None], n, axis=1)
     return GridMap(prob, resolution, grid.origin)
+
+
+def parallel_corridors_y(*, width=6.0, wall=0.05):
+    """The y of B in A where two copies of ``corridor`` lie side by side sharing a wall (Table 2).
+
+    B's lower wall [-w/2 - wall, -w/2) then covers A's upper wall [w/2, w/2 + wall).
+    """
+    return width + wall
+
+
+def noisy_copy(grid: GridMap, *, flip=0.0, drop=0.0, rng=None):
+    """A copy of ``grid`` with a fraction ``flip`` of its known cells flipped (p -> 1 - p) and a
+    fraction ``drop`` of them turned unknown, chosen at random by ``rng`` (a NumPy Generator)."""
+    rng = np.random.default_rng(rng)
+    prob = np.array(grid.prob)
+    known = np.flatnonzero(~np.isnan(prob))
+    picks = rng.permutation(known)
+    n_flip = int(round(flip * known.size))
+    n_drop = int(round(drop * known.size))
+    flat = prob.reshape(-1)
+    flat[picks[:n_flip]] = 1.0 - flat[picks[:n_flip]]
+    flat[picks[n_flip:n_flip + n_drop]] = np.nan
+    return grid.with_prob(prob)
