@@ -49,7 +49,7 @@ class MatchOptions:
     blur: float = 0.5
     blur_kind: Literal["gaussian", "ramp"] = "gaussian"
     prior_weight: float = 100.0
-    rotation_scale: float = 3.0
+    rotation_scale: float = 2.0
     step: Optional[float] = None
     rotation_step: Optional[float] = None
     max_step: Optional[float] = None
