@@ -19,11 +19,16 @@ def _plt():
     return plt
 
 
-def map_rgba(grid: GridMap, *, tint=None, alpha_free=1.0, alpha_occupied=1.0):
-    """RGBA image of a map: free white, occupied black (or ``tint``), unknown blue (or clear)."""
+def map_rgba(grid: GridMap, *, tint=None, alpha_free=1.0, alpha_occupied=1.0, stretch=False):
+    """RGBA image of a map: free white, occupied black (or ``tint``), unknown blue (or clear).
+
+    ``stretch`` maps the largest probability to black, to make a faint blur visible.
+    """
     p = grid.prob
     known = ~np.isnan(p)
     q = np.nan_to_num(p, nan=0.0)
+    if stretch and q.max() > 0:
+        q = q / q.max()
     rgba = np.zeros(p.shape + (4,))
     if tint is None:
         grey = 1.0 - q
@@ -109,8 +114,10 @@ def save_maps(path, raw: GridMap, blurred: GridMap, *, title=""):
     """The paper's Fig. 3: a map and its blurred version side by side."""
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(10, 5))
-    for ax, grid, label in ((axes[0], raw, "original"), (axes[1], blurred, "blurred")):
-        draw_map(ax, grid)
+    peak = np.nanmax(blurred.prob) if np.any(~np.isnan(blurred.prob)) else 1.0
+    for ax, grid, label, stretch in ((axes[0], raw, "original", False),
+                                     (axes[1], blurred, f"blurred (grey stretched: black = {peak:.2f})", True)):
+        draw_map(ax, grid, stretch=stretch)
         x0, x1, y0, y1 = grid.extent
         ax.set_xlim(x0, x1)
         ax.set_ylim(y0, y1)

@@ -148,3 +148,10 @@ def test_evaluation_counts_stay_small_on_a_fixed_problem(corridor_map, matcher):
     assert res.iterations <= 30
     assert res.launches <= 2 * res.iterations + 15
     assert 13 * res.launches <= res.evaluations <= 25 * res.launches
+
+
+def test_calibrated_covariance_uses_the_published_scale(corridor_map, matcher):
+    from taichi_match import CALIBRATED_COVARIANCE_SCALE
+
+    res = matcher.match(corridor_map, corridor_map, (0.1, 0.2, 0.05), covariance_scale=4.0)
+    assert np.allclose(res.calibrated_covariance, res.covariance / 4.0 * CALIBRATED_COVARIANCE_SCALE)
