@@ -26,13 +26,13 @@ COVARIANCE_NOISE = ({"flip": 0.002, "drop": 0.1}, {"flip": 0.0, "drop": 0.0})
 
 
 def git_revision():
-    """The short git revision of the source tree, with ``-dirty`` for uncommitted changes."""
+    """The short git revision of the source tree, ``-dirty`` if the package has uncommitted changes."""
     here = os.path.dirname(os.path.abspath(__file__))
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=here,
                              timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], capture_output=True,
-                               text=True, cwd=here, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "."],
+                               capture_output=True, text=True, cwd=here, timeout=10).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return (rev + ("-dirty" if dirty else "")) if rev else "unknown"
