@@ -24,21 +24,26 @@ def affine_coefficients(poses, a: GridMap, b: GridMap, pad=1):
 
     ``u = c0*j + c1*i + c2`` is A's column and ``v = c3*j + c4*i + c5`` A's row, both offset by
     ``pad`` for A's ring of unknown cells; the cell is (floor(v), floor(u)). B's cells are taken
-    at their centres (eq. 2), rotated and translated (eq. 4) and scaled into A's cells (eq. 3).
+    at their centres (eq. 2), placed in B's frame by B's corner pose, moved into A's frame by the
+    pose (eq. 4), and into A's grid by the inverse of A's corner pose and resolution (eq. 3).
     """
     poses = np.asarray(poses, dtype=np.float64)
     x, y, theta = poses[:, 0], poses[:, 1], poses[:, 2]
-    c, s = np.cos(theta), np.sin(theta)
+    bx, by, b_yaw = b.corner_pose
+    ax, ay, a_yaw = a.corner_pose
     ratio = b.resolution / a.resolution
-    xb0 = b.origin[0] + 0.5 * b.resolution          # centre of B's cell (0, 0)
-    yb0 = b.origin[1] + 0.5 * b.resolution
+    phi = theta + b_yaw - a_yaw                                  # B's grid axes in A's grid
+    m00, m01 = np.cos(phi) * ratio, -np.sin(phi) * ratio
+    m10, m11 = np.sin(phi) * ratio, np.cos(phi) * ratio
+    # B's corner in A's frame, then in A's grid (cells)
+    cx = np.cos(theta) * bx - np.sin(theta) * by + x - ax
+    cy = np.sin(theta) * bx + np.cos(theta) * by + y - ay
+    ca, sa = np.cos(a_yaw), np.sin(a_yaw)
+    u0 = (ca * cx + sa * cy) / a.resolution + pad
+    v0 = (-sa * cx + ca * cy) / a.resolution + pad
     out = np.empty((len(poses), 6))
-    out[:, 0] = c * ratio
-    out[:, 1] = -s * ratio
-    out[:, 2] = (c * xb0 - s * yb0 + x - a.origin[0]) / a.resolution + pad
-    out[:, 3] = s * ratio
-    out[:, 4] = c * ratio
-    out[:, 5] = (s * xb0 + c * yb0 + y - a.origin[1]) / a.resolution + pad
+    out[:, 0], out[:, 1], out[:, 2] = m00, m01, u0 + 0.5 * (m00 + m01)      # cell centres: + 1/2
+    out[:, 3], out[:, 4], out[:, 5] = m10, m11, v0 + 0.5 * (m10 + m11)
     return out
 
 

@@ -8,6 +8,9 @@ Conventions, stated once for the whole library:
 - ``resolution`` is the cell side in metres; ``origin = (x0, y0)`` is the outer corner of cell (0, 0)
   in the map's own frame, so cell (i, j) covers x in [x0 + j*res, x0 + (j+1)*res) and
   y in [y0 + i*res, y0 + (i+1)*res).
+- ``origin = (x0, y0, yaw)`` (as in a ROS map_server YAML) also turns the grid by ``yaw`` radians
+  about that corner: the cell with local coordinates (x, y) = ((j + 1/2) res, (i + 1/2) res) has
+  its centre at (x0, y0) + R(yaw) (x, y) in the map's frame. ``yaw`` is 0 unless given.
 - A cell is represented by its centre (eq. 2); a point falls in the cell given by floor (eq. 3).
 """
 
@@ -33,12 +36,13 @@ class GridMap:
         (x0, y0) of the outer corner of cell (0, 0), metres, in the map's own frame.
     """
 
-    __slots__ = ("_prob", "_resolution", "_origin", "__weakref__")
+    __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "__weakref__")
 
     def __init__(self, prob, resolution, origin=(0.0, 0.0)):
         self._prob = _check_prob(prob)
         self._resolution = _check_resolution(resolution)
-        self._origin = _check_origin(origin)
+        *xy, self._yaw = _check_origin(origin)
+        self._origin = tuple(xy)
 
     @property
     def prob(self):
@@ -55,6 +59,16 @@ class GridMap:
         return self._origin
 
     @property
+    def yaw(self):
+        """Rotation of the grid about ``origin`` in the map's frame, radians (0 for most maps)."""
+        return self._yaw
+
+    @property
+    def corner_pose(self):
+        """(x0, y0, yaw): the pose of the grid's local frame (corner of cell (0, 0)) in the map frame."""
+        return (*self._origin, self._yaw)
+
+    @property
     def shape(self):
         return self._prob.shape
 
@@ -65,36 +79,46 @@ class GridMap:
 
     @property
     def extent(self):
-        """(x_min, x_max, y_min, y_max) of the grid in its own frame, metres."""
-        x0, y0 = self._origin
+        """(x_min, x_max, y_min, y_max) of the grid in the map frame, metres (the bounding box
+        of the turned grid when yaw != 0)."""
         rows, cols = self.shape
-        return (x0, x0 + cols * self._resolution, y0, y0 + rows * self._resolution)
+        w, h = cols * self._resolution, rows * self._resolution
+        c, s = np.cos(self._yaw), np.sin(self._yaw)
+        xs = self._origin[0] + np.array([0.0, c * w, -s * h, c * w - s * h])
+        ys = self._origin[1] + np.array([0.0, s * w, c * h, s * w + c * h])
+        return (float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max()))
 
     def cell_centres(self, rows=None, cols=None):
-        """Eq. (2): the (x, y) centres of cells (rows[k], cols[k]); all cells when both are None."""
+        """Eq. (2): the (x, y) centres of cells (rows[k], cols[k]) in the map frame; all cells when
+        both are None."""
         if rows is None and cols is None:
             rows, cols = np.indices(self.shape)
-        rows = np.asarray(rows, dtype=np.float64)
-        cols = np.asarray(cols, dtype=np.float64)
+        lx = (np.asarray(cols, dtype=np.float64) + 0.5) * self._resolution
+        ly = (np.asarray(rows, dtype=np.float64) + 0.5) * self._resolution
+        c, s = np.cos(self._yaw), np.sin(self._yaw)
         x0, y0 = self._origin
-        return np.stack([x0 + (cols + 0.5) * self._resolution, y0 + (rows + 0.5) * self._resolution], axis=-1)
+        return np.stack([x0 + c * lx - s * ly, y0 + s * lx + c * ly], axis=-1)
 
     def cell_of(self, points):
-        """Eq. (3): integer (row, col) of the cells the points (..., 2) fall in (may lie outside)."""
+        """Eq. (3): integer (row, col) of the cells the map-frame points (..., 2) fall in (may lie
+        outside the grid)."""
         points = np.asarray(points, dtype=np.float64)
-        x0, y0 = self._origin
-        cols = np.floor((points[..., 0] - x0) / self._resolution)
-        rows = np.floor((points[..., 1] - y0) / self._resolution)
+        dx = points[..., 0] - self._origin[0]
+        dy = points[..., 1] - self._origin[1]
+        c, s = np.cos(self._yaw), np.sin(self._yaw)
+        cols = np.floor((c * dx + s * dy) / self._resolution)
+        rows = np.floor((-s * dx + c * dy) / self._resolution)
         return rows, cols
 
     def with_prob(self, prob):
         """A map with the same geometry and new probabilities."""
-        return GridMap(prob, self._resolution, self._origin)
+        return GridMap(prob, self._resolution, self.corner_pose)
 
     def __repr__(self):
         rows, cols = self.shape
         known = int(self.known.sum())
-        return (f"GridMap({rows}x{cols} cells, resolution={self._resolution} m, origin={self._origin}, "
+        origin = self._origin if self._yaw == 0.0 else self.corner_pose
+        return (f"GridMap({rows}x{cols} cells, resolution={self._resolution} m, origin={origin}, "
                 f"{known} known cells)")
 
 
@@ -131,12 +155,14 @@ def _check_resolution(resolution):
 
 
 def _check_origin(origin):
+    """(x0, y0, yaw) as floats from (x0, y0) or (x0, y0, yaw)."""
     try:
         arr = np.asarray(origin, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InvalidMapError(f"origin must be two numbers (x0, y0) in metres; got {origin!r}") from exc
-    if arr.shape != (2,):
-        raise InvalidMapError(f"origin must be (x0, y0), shape (2,); got shape {arr.shape}")
+        raise InvalidMapError(f"origin must be (x0, y0) or (x0, y0, yaw) in metres and radians; "
+                              f"got {origin!r}") from exc
+    if arr.shape not in ((2,), (3,)):
+        raise InvalidMapError(f"origin must be (x0, y0) or (x0, y0, yaw), shape (2,) or (3,); got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise InvalidMapError(f"origin must be finite; got {arr.tolist()}")
-    return (float(arr[0]), float(arr[1]))
+    return (float(arr[0]), float(arr[1]), float(arr[2]) if arr.shape == (3,) else 0.0)

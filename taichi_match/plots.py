@@ -45,10 +45,12 @@ def draw_map(ax, grid: GridMap, pose=(0.0, 0.0, 0.0), **style):
     """Draw ``grid`` on ``ax`` in frame A, placed by ``pose`` (r_A2B of the grid's frame)."""
     from matplotlib.transforms import Affine2D
 
-    x0, x1, y0, y1 = grid.extent
-    transform = Affine2D().rotate(pose[2]).translate(pose[0], pose[1]) + ax.transData
-    return ax.imshow(map_rgba(grid, **style), origin="lower", extent=(x0, x1, y0, y1), transform=transform,
-                     interpolation="nearest")
+    rows, cols = grid.shape
+    gx, gy, yaw = grid.corner_pose
+    transform = (Affine2D().rotate(yaw).translate(gx, gy).rotate(pose[2]).translate(pose[0], pose[1])
+                 + ax.transData)
+    return ax.imshow(map_rgba(grid, **style), origin="lower", transform=transform, interpolation="nearest",
+                     extent=(0.0, cols * grid.resolution, 0.0, rows * grid.resolution))
 
 
 def draw_overlay(ax, a: GridMap, b: GridMap, pose, *, covariance=None, title=None):

@@ -29,6 +29,8 @@ CASES = [  # shape_a, res_a, origin_a, shape_b, res_b, origin_b
     ((120, 80), 0.025, (-1.0, -1.5), (50, 70), 0.04, (-0.8, -0.9)),
     ((7, 300), 0.2, (-30.0, 1.0), (90, 12), 0.13, (-5.0, -4.0)),
     ((1, 1), 1.0, (0.0, 0.0), (3, 2), 0.5, (0.0, 0.0)),
+    ((50, 60), 0.05, (-1.0, 0.5, 0.7), (40, 30), 0.05, (0.2, -0.3, -2.1)),       # ROS origins with yaw
+    ((33, 47), 0.1, (2.0, 1.0, np.pi), (25, 25), 0.07, (0.0, 0.0, 0.0)),
 ]
 
 
@@ -38,11 +40,12 @@ def boundary_ties(a, b, poses, tol=1e-4):
     rows, cols = np.nonzero(b.known)
     centres = b.cell_centres(rows, cols)
     ties = []
+    ca, sa = np.cos(a.yaw), np.sin(a.yaw)
     for x, y, t in poses:
-        px = np.cos(t) * centres[:, 0] - np.sin(t) * centres[:, 1] + x
-        py = np.sin(t) * centres[:, 0] + np.cos(t) * centres[:, 1] + y
-        u = (px - a.origin[0]) / a.resolution
-        v = (py - a.origin[1]) / a.resolution
+        px = np.cos(t) * centres[:, 0] - np.sin(t) * centres[:, 1] + x - a.origin[0]
+        py = np.sin(t) * centres[:, 0] + np.cos(t) * centres[:, 1] + y - a.origin[1]
+        u = (ca * px + sa * py) / a.resolution
+        v = (-sa * px + ca * py) / a.resolution
         near = lambda w: np.abs(w - np.round(w)) < tol
         ties.append(int(np.count_nonzero(near(u) | near(v))))
     return np.array(ties)
@@ -66,6 +69,29 @@ def test_kernel_matches_numpy_oracle_on_random_maps(case, rng):
     assert np.all(np.abs(v_ti - v_np) <= allowed)
     assert np.mean(np.abs(v_ti - v_np) < 1e-3) > 0.8       # and mostly identical up to float32 sums
     assert n_np.max() > 0
+
+
+def test_a_grid_turned_by_its_yaw_is_the_same_map(rng):
+    """The same cells stored transposed with yaw = 90 degrees give the same discrepancy."""
+    prob = rng.random((30, 40))
+    prob[rng.random(prob.shape) < 0.2] = np.nan
+    a = GridMap(prob, 0.1, (0.0, 0.0))
+    a_turned = GridMap(prob[:, ::-1].T, 0.1, (40 * 0.1, 0.0, np.pi / 2))
+    def cells(g):               # (x, y, p) of every known cell, in a canonical order
+        xyp = np.column_stack([g.cell_centres()[g.known], g.prob[g.known]])
+        return xyp[np.lexsort(np.round(xyp[:, :2].T, 6))]
+
+    assert np.allclose(cells(a), cells(a_turned))
+    b = random_map(rng, (25, 35), 0.08, (-0.5, 0.3))
+    poses = np.column_stack([rng.uniform(-1, 2, 20), rng.uniform(-1, 2, 20), rng.uniform(-3, 3, 20)])
+    for engine in ("numpy", "taichi"):
+        v, n = discrepancy(a, b, poses, engine=engine, return_overlap=True)
+        v_t, n_t = discrepancy(a_turned, b, poses, engine=engine, return_overlap=True)
+        assert np.all(np.abs(n - n_t) <= 2) and np.all(np.abs(v - v_t) <= 2.0)
+        assert np.mean(np.abs(v - v_t) < 1e-3) > 0.8
+        w, m = discrepancy(b, a, poses, engine=engine, return_overlap=True)
+        w_t, m_t = discrepancy(b, a_turned, poses, engine=engine, return_overlap=True)
+        assert np.all(np.abs(m - m_t) <= 2) and np.mean(np.abs(w - w_t) < 1e-3) > 0.8
 
 
 def test_identical_maps_give_zero_at_identity(rng):

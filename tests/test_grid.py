@@ -44,7 +44,8 @@ def test_bad_resolution(res):
         GridMap(np.zeros((2, 2)), res)
 
 
-@pytest.mark.parametrize("origin", [(0.0,), (0.0, 1.0, 2.0), (np.nan, 0.0), (0.0, np.inf), "ab", None])
+@pytest.mark.parametrize("origin", [(0.0,), (0.0, 1.0, 2.0, 3.0), (np.nan, 0.0), (0.0, np.inf), (0.0, 0.0, np.nan),
+                                    "ab", None])
 def test_bad_origin(origin):
     with pytest.raises(InvalidMapError, match="origin"):
         GridMap(np.zeros((2, 2)), 0.1, origin)
@@ -61,3 +62,23 @@ def test_nan_is_unknown_and_bool_maps_are_accepted():
     g = GridMap(np.array([[np.nan, 1.0], [0.0, 0.25]]), 0.1)
     assert g.known.tolist() == [[False, True], [True, True]]
     assert GridMap(np.array([[True, False]]), 0.1).prob.tolist() == [[1.0, 0.0]]
+
+
+def test_yaw_turns_the_grid_about_its_corner():
+    g = GridMap(np.zeros((3, 4)), 0.5, (1.0, 2.0, np.pi / 2))
+    assert g.origin == (1.0, 2.0) and g.yaw == np.pi / 2
+    # cell (i=2, j=1): local centre (0.75, 1.25); turned by 90 degrees: (-1.25, 0.75); plus the corner
+    assert np.allclose(g.cell_centres([2], [1]), [[1.0 - 1.25, 2.0 + 0.75]])
+    rows, cols = g.cell_of([[1.0 - 1.25, 2.0 + 0.75]])
+    assert rows.tolist() == [2] and cols.tolist() == [1]
+    assert np.allclose(g.extent, (1.0 - 1.5, 1.0, 2.0, 2.0 + 2.0))
+    assert GridMap(np.zeros((2, 2)), 0.1, (0.0, 0.0)).yaw == 0.0
+
+
+def test_cell_of_inverts_cell_centres_for_any_yaw():
+    rng = np.random.default_rng(1)
+    for yaw in (0.0, 0.3, -2.0, np.pi):
+        g = GridMap(np.zeros((7, 9)), 0.2, (rng.normal(), rng.normal(), yaw))
+        rows, cols = np.indices(g.shape)
+        r, c = g.cell_of(g.cell_centres(rows, cols))
+        assert np.array_equal(r, rows) and np.array_equal(c, cols)
