@@ -1,6 +1,7 @@
 """The library's own exceptions: one root, subclasses of the built-ins where natural."""
 
-__all__ = ["TaichiMatchError", "InvalidMapError", "InvalidPoseError", "EngineError"]
+__all__ = ["TaichiMatchError", "InvalidMapError", "InvalidPoseError", "EngineError", "MapFileError",
+           "MapFormatError"]
 
 
 class TaichiMatchError(Exception):
@@ -17,3 +18,12 @@ class InvalidPoseError(TaichiMatchError, ValueError):
 
 class EngineError(TaichiMatchError, RuntimeError):
     """The evaluation engine cannot run here (for instance Taichi in a forked child)."""
+
+
+class MapFileError(TaichiMatchError, OSError):
+    """A map file (YAML, image, .npz) cannot be read or written."""
+
+
+class MapFormatError(TaichiMatchError, ValueError):
+    """A map file is readable but malformed (a YAML field missing or of the wrong type, a
+    truncated or unsupported image)."""

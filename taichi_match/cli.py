@@ -79,6 +79,89 @@ def _reproduce(args):
     return 0
 
 
+EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+def _map_overrides(args, which):
+    thresholds = getattr(args, f"thresholds_{which}")
+    resolution = getattr(args, f"resolution_{which}")
+    out = {}
+    if thresholds is not None:
+        out["occupied_thresh"], out["free_thresh"] = thresholds
+    if resolution is not None:
+        out["resolution"] = resolution
+    return out
+
+
+def _load_pair(args):
+    from taichi_match.io import load_map
+
+    return load_map(args.map_a, **_map_overrides(args, "a")), load_map(args.map_b, **_map_overrides(args, "b"))
+
+
+def _align(args):
+    import json
+
+    import numpy as np
+
+    import taichi_match as tm
+
+    a, b = _load_pair(args)
+    options = {k: v for k, v in (("blur", args.blur), ("prior_weight", args.prior_weight),
+                                 ("rotation_scale", args.rotation_scale), ("max_iterations", args.max_iterations))
+               if v is not None}
+    res = tm.match(a, b, args.initial, **options)
+    cov = res.calibrated_covariance
+    if args.json:
+        print(json.dumps({
+            "pose": res.pose.tolist(), "covariance": cov.tolist(), "covariance_unscaled": res.covariance.tolist(),
+            "information": res.information.tolist(), "degenerate": res.degenerate.tolist(),
+            "status": res.status.name, "converged": bool(res.converged), "message": res.message,
+            "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
+            "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
+        }, indent=2))
+    else:
+        x, y, t = res.pose
+        print(f"pose (B in A)  x={x:+.4f} m  y={y:+.4f} m  theta={t:+.5f} rad")
+        print(f"status         {res.status.name}: {res.message}")
+        print(f"iterations     {res.iterations}, overlap {res.overlap} cells, time {1e3 * res.seconds:.1f} ms")
+        print("covariance (x, y, theta), calibrated:")
+        print(np.array2string(cov, precision=6))
+        for d in res.degenerate:
+            print("degenerate direction:", np.round(d, 4) + 0.0)
+    if args.g2o is not None:
+        info = np.linalg.inv(cov)
+        ids = args.g2o
+        print(f"EDGE_SE2 {ids[0]} {ids[1]} {res.pose[0]:.6f} {res.pose[1]:.6f} {res.pose[2]:.6f} "
+              + " ".join(f"{info[i, j]:.6g}" for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))))
+    if args.plot:
+        from taichi_match import plots
+        plots.save_overlay(args.plot, a, b, res.initial_pose, res, title=f"{args.map_a} + {args.map_b}")
+    return EXIT_OK if res.converged else EXIT_NOT_CONVERGED
+
+
+def _merge(args):
+    from taichi_match.io import write_ros_map
+    from taichi_match.merge import merge_maps
+
+    a, b = _load_pair(args)
+    merged = merge_maps(a, b, args.pose)
+    write_ros_map(merged, args.output, mode=args.mode)
+    print(f"wrote {args.output}: {merged.shape[0]} x {merged.shape[1]} cells at {merged.resolution} m, "
+          f"origin {merged.origin}")
+    return EXIT_OK
+
+
+def _add_map_arguments(parser):
+    parser.add_argument("map_a", metavar="A.yaml", help="map A (map_server .yaml or .npz)")
+    parser.add_argument("map_b", metavar="B.yaml", help="map B")
+    for which in ("a", "b"):
+        parser.add_argument(f"--thresholds-{which}", nargs=2, type=float, metavar=("OCC", "FREE"),
+                            help=f"override map {which.upper()}'s occupied_thresh and free_thresh")
+        parser.add_argument(f"--resolution-{which}", type=float, metavar="M",
+                            help=f"override map {which.upper()}'s resolution (metres per cell)")
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(
         prog="taichi-match", description="Relative pose between overlapping occupancy grid maps.")
@@ -97,10 +180,36 @@ def main(argv=None):
     rep.add_argument("--seed", type=int, default=0, help="seed of the initial poses and noise (default: %(default)s)")
     rep.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     rep.set_defaults(func=_reproduce)
+    align = sub.add_parser("align", help="find the pose of map B in map A (exit 0 converged, 1 not, 2 bad input)")
+    _add_map_arguments(align)
+    align.add_argument("--initial", nargs=3, type=float, required=True, metavar=("X", "Y", "THETA"),
+                       help="initial guess of B's pose in A (metres, metres, radians)")
+    align.add_argument("--json", action="store_true", help="print the result as JSON")
+    align.add_argument("--plot", metavar="PNG", help="write the overlay of the aligned maps with the covariance")
+    align.add_argument("--g2o", nargs=2, type=int, metavar=("ID_A", "ID_B"),
+                       help="also print a g2o EDGE_SE2 line (pose and information matrix)")
+    align.add_argument("--blur", type=float, help="blur width, metres")
+    align.add_argument("--prior-weight", type=float, help="K of eq. (8)")
+    align.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")
+    align.add_argument("--max-iterations", type=int)
+    align.set_defaults(func=_align)
+    merge = sub.add_parser("merge", help="fuse map B into map A's frame (log-odds) and save a map_server map")
+    _add_map_arguments(merge)
+    merge.add_argument("--pose", nargs=3, type=float, required=True, metavar=("X", "Y", "THETA"),
+                       help="B's pose in A (from align)")
+    merge.add_argument("-o", "--output", required=True, metavar="MERGED.yaml")
+    merge.add_argument("--mode", choices=("trinary", "scale", "raw"), default="trinary")
+    merge.set_defaults(func=_merge)
     args = parser.parse_args(argv)
     if getattr(args, "trials", 1) < 1 or getattr(args, "covariance_trials", 2) < 2:
         parser.error("--trials must be >= 1 and --covariance-trials >= 2")
-    return args.func(args)
+    from taichi_match import TaichiMatchError
+
+    try:
+        return args.func(args)
+    except (TaichiMatchError, ValueError) as exc:
+        print(f"taichi-match: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

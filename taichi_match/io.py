@@ -1,0 +1,399 @@
+"""Map files: ROS ``map_server`` YAML + PGM/PNG, ``nav_msgs/OccupancyGrid``-style arrays, .npz.
+
+Apart from the core (which never imports it). ROS conventions, as ``map_server`` loads a map:
+
+- The YAML holds ``image`` (a path relative to the YAML), ``resolution``, ``origin: [x, y, yaw]``
+  (the pose of the lower-left pixel in the map frame), ``negate``, ``occupied_thresh``,
+  ``free_thresh`` and ``mode`` (``trinary``, ``scale`` or ``raw``; trinary by default).
+- A pixel's grey level v is the mean of its colour channels (alpha aside); its occupancy is
+  p = (255 - v) / 255, or v / 255 with ``negate``. Trinary: p > occupied_thresh is occupied (1),
+  p < free_thresh is free (0), anything between is unknown. Scale: the same, except that a pixel
+  between the thresholds keeps the value 1 + 98 (p - free) / (occ - free) percent, and is unknown
+  only where the image's alpha is below 255. Raw: v is the occupancy in percent (0-100), other
+  values are unknown.
+- The image's first row is the top of the map (largest y): rows are flipped on reading.
+- An ``OccupancyGrid`` holds int8 occupancy percent, -1 for unknown, row 0 at the lowest y.
+"""
+
+import os
+import re
+import struct
+import zlib
+
+import numpy as np
+
+from ._errors import MapFileError, MapFormatError
+from ._grid import GridMap
+
+__all__ = [
+    "read_ros_map", "write_ros_map", "read_image", "write_image", "to_occupancy_grid", "from_occupancy_grid",
+    "save_npz", "load_npz", "load_map",
+]
+
+MODES = ("trinary", "scale", "raw")
+
+
+# ---------------------------------------------------------------------------------------------
+# ROS map_server YAML
+
+
+def read_ros_map(yaml_path, *, occupied_thresh=None, free_thresh=None, negate=None, mode=None,
+                 resolution=None) -> GridMap:
+    """Load a ROS ``map_server`` map. Keyword arguments override the YAML's fields (for maps whose
+    thresholds or resolution are known to be off; see ``shared/maps/SOURCES.md``)."""
+    meta = read_map_yaml(yaml_path)
+    for key, value in (("occupied_thresh", occupied_thresh), ("free_thresh", free_thresh), ("negate", negate),
+                       ("mode", mode), ("resolution", resolution)):
+        if value is not None:
+            meta[key] = value
+    _check_meta(meta, yaml_path)
+    image = read_image(meta["image"])
+    occupancy = _pixels_to_occupancy(image, meta)
+    prob = np.where(occupancy < 0, np.nan, occupancy / 100.0)[::-1]      # first image row = top of the map
+    return GridMap(prob, meta["resolution"], tuple(meta["origin"]))
+
+
+def read_map_yaml(yaml_path):
+    """The fields of a map_server YAML as a dict, with ``image`` resolved against the YAML's folder."""
+    try:
+        with open(yaml_path, encoding="utf-8") as f:
+            text = f.read()
+    except OSError as exc:
+        raise MapFileError(f"cannot read map YAML {yaml_path!r}: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError as exc:
+        raise MapFormatError(f"{yaml_path}: not a text YAML file ({exc})") from exc
+    meta = {}
+    for number, line in enumerate(text.splitlines(), 1):
+        line = _strip_comment(line).strip()
+        if not line or line in ("---", "..."):
+            continue
+        key, sep, value = line.partition(":")
+        if not sep or not key.strip():
+            raise MapFormatError(f"{yaml_path}, line {number}: expected 'key: value', got {line!r}")
+        meta[key.strip()] = _parse_scalar(value.strip(), yaml_path, number)
+    for key in ("image", "resolution", "origin"):
+        if key not in meta:
+            raise MapFormatError(f"{yaml_path}: the field {key!r} is missing (map_server needs image, "
+                                 f"resolution and origin)")
+    if not isinstance(meta["image"], str) or not meta["image"]:
+        raise MapFormatError(f"{yaml_path}: 'image' must be a file name; got {meta['image']!r}")
+    meta["image"] = os.path.join(os.path.dirname(os.path.abspath(yaml_path)), meta["image"])
+    meta.setdefault("negate", 0)
+    meta.setdefault("occupied_thresh", 0.65)
+    meta.setdefault("free_thresh", 0.196)
+    meta.setdefault("mode", "trinary")
+    return meta
+
+
+def _strip_comment(line):
+    out, quote = [], None
+    for ch in line:
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch == "#":
+            break
+        out.append(ch)
+    return "".join(out)
+
+
+_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+
+
+def _parse_scalar(text, path, number):
+    if text.startswith("[") or text.endswith("]"):
+        if not (text.startswith("[") and text.endswith("]")):
+            raise MapFormatError(f"{path}, line {number}: unbalanced list {text!r}")
+        items = [t.strip() for t in text[1:-1].split(",") if t.strip()]
+        return [_parse_scalar(t, path, number) for t in items]
+    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
+        return text[1:-1]
+    if _NUMBER.match(text):
+        return float(text) if any(c in text for c in ".eE") else int(text)
+    if text.lower() in ("true", "false"):
+        return text.lower() == "true"
+    return text
+
+
+def _check_meta(meta, path):
+    def number(key, low=None, high=None, strict_low=False):
+        value = meta[key]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+            raise MapFormatError(f"{path}: {key!r} must be a number; got {value!r}")
+        if low is not None and (value < low or (strict_low and value == low)) or high is not None and value > high:
+            raise MapFormatError(f"{path}: {key!r} = {value} is out of range")
+        return float(value)
+
+    meta["resolution"] = number("resolution", 0.0, strict_low=True)
+    meta["occupied_thresh"] = number("occupied_thresh", 0.0, 1.0)
+    meta["free_thresh"] = number("free_thresh", 0.0, 1.0)
+    if meta["free_thresh"] > meta["occupied_thresh"]:
+        raise MapFormatError(f"{path}: free_thresh {meta['free_thresh']} is above occupied_thresh "
+                             f"{meta['occupied_thresh']}")
+    origin = meta["origin"]
+    if not isinstance(origin, list) or len(origin) not in (2, 3) or \
+            not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in origin):
+        raise MapFormatError(f"{path}: 'origin' must be [x, y, yaw] numbers; got {origin!r}")
+    meta["origin"] = [float(v) for v in origin] + ([0.0] if len(origin) == 2 else [])
+    negate = meta["negate"]
+    if negate not in (0, 1, True, False):
+        raise MapFormatError(f"{path}: 'negate' must be 0 or 1; got {negate!r}")
+    meta["negate"] = bool(negate)
+    if meta["mode"] not in MODES:
+        raise MapFormatError(f"{path}: 'mode' must be one of {MODES}; got {meta['mode']!r}")
+
+
+def _pixels_to_occupancy(image, meta):
+    """map_server's rules: int occupancy percent per pixel, -1 for unknown (image row order)."""
+    pixels = image.astype(np.float64)
+    has_alpha = pixels.ndim == 3 and pixels.shape[2] in (2, 4)
+    alpha = pixels[..., -1] if has_alpha else None
+    colour = pixels[..., :-1] if has_alpha else pixels
+    grey = colour.mean(axis=2) if colour.ndim == 3 else colour
+    if meta["mode"] == "raw":
+        v = np.rint(grey).astype(np.int64)
+        return np.where(v <= 100, v, -1)
+    if meta["negate"]:
+        grey = 255.0 - grey
+    occ = (255.0 - grey) / 255.0
+    out = np.full(grey.shape, -1, dtype=np.int64)
+    between = (occ <= meta["occupied_thresh"]) & (occ >= meta["free_thresh"])
+    if meta["mode"] == "scale":
+        opaque = np.ones(grey.shape, bool) if alpha is None else alpha >= 255
+        span = max(meta["occupied_thresh"] - meta["free_thresh"], 1e-12)
+        scaled = np.rint(1 + 98 * (occ - meta["free_thresh"]) / span).astype(np.int64)
+        out = np.where(between & opaque, scaled, out)
+    out[occ > meta["occupied_thresh"]] = 100
+    out[occ < meta["free_thresh"]] = 0
+    return out
+
+
+def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occupied_thresh=0.65,
+                  free_thresh=0.196):
+    """Save ``grid`` as a map_server YAML and image (PGM, or PNG by the image name's extension).
+
+    ``trinary``: occupied (p > occupied_thresh) black, free (p < free_thresh) white (254),
+    unknown grey (205). ``scale``: grey levels 255 (1 - p), unknown transparent (PNG only).
+    ``raw``: the occupancy percent as the grey level, unknown 255.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}; got {mode!r}")
+    base = os.path.splitext(os.path.basename(yaml_path))[0]
+    image = image or base + (".png" if mode == "scale" else ".pgm")
+    folder = os.path.dirname(os.path.abspath(yaml_path))
+    p = grid.prob[::-1]                                           # top row first
+    unknown = np.isnan(p)
+    q = np.nan_to_num(p, nan=0.0)
+    if mode == "trinary":
+        pixels = np.where(q > occupied_thresh, 0, np.where(q < free_thresh, 254, 205)).astype(np.uint8)
+        pixels[unknown] = 205
+    elif mode == "raw":
+        pixels = np.where(unknown, 255, np.rint(100 * q)).astype(np.uint8)
+    else:
+        if not image.lower().endswith(".png"):
+            raise ValueError("scale mode stores unknown cells as transparency: use a .png image")
+        grey = np.rint(255 * (1 - q)).astype(np.uint8)
+        pixels = np.dstack([grey, np.where(unknown, 0, 255).astype(np.uint8)])
+    write_image(os.path.join(folder, image), pixels)
+    x0, y0, yaw = grid.corner_pose
+    text = (f"image: {image}\nresolution: {grid.resolution!r}\norigin: [{x0!r}, {y0!r}, {yaw!r}]\n"
+            f"negate: 0\noccupied_thresh: {occupied_thresh!r}\nfree_thresh: {free_thresh!r}\nmode: {mode}\n")
+    try:
+        with open(yaml_path, "w", encoding="utf-8") as f:
+            f.write(text)
+    except OSError as exc:
+        raise MapFileError(f"cannot write {yaml_path!r}: {exc.strerror or exc}") from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# Images: PGM (P2, P5) and PNG (8-bit grey, grey + alpha, RGB, RGBA; not interlaced)
+
+
+def read_image(path):
+    """An image as a uint8 array (rows, cols) or (rows, cols, channels), first row at the top."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        raise MapFileError(f"cannot read image {path!r}: {exc.strerror or exc}") from exc
+    if data[:2] in (b"P5", b"P2"):
+        return _read_pgm(data, path)
+    if data[:8] == b"\x89PNG\r\n\x1a\n":
+        return _read_png(data, path)
+    raise MapFormatError(f"{path}: not a PGM (P2/P5) or PNG image")
+
+
+def _read_pgm(data, path):
+    fields, pos = [], 2
+    while len(fields) < 3:
+        match = re.compile(rb"\s*(#[^\n]*\n\s*)*(\S+)").match(data, pos)
+        if match is None:
+            raise MapFormatError(f"{path}: truncated PGM header")
+        fields.append(match.group(2))
+        pos = match.end()
+    try:
+        width, height, maxval = (int(v) for v in fields)
+    except ValueError as exc:
+        raise MapFormatError(f"{path}: bad PGM header {fields!r}") from exc
+    if width < 1 or height < 1 or not 0 < maxval < 65536:
+        raise MapFormatError(f"{path}: bad PGM size {width}x{height} or maxval {maxval}")
+    if data[:2] == b"P2":
+        values = np.array(data[pos:].split(), dtype=np.int64)
+        if values.size < width * height:
+            raise MapFormatError(f"{path}: truncated PGM: {values.size} of {width * height} pixels")
+        pixels = values[:width * height]
+    else:
+        pos += 1                                                   # the single whitespace after maxval
+        dtype = np.dtype(">u2") if maxval > 255 else np.dtype(np.uint8)
+        need = width * height * dtype.itemsize
+        if len(data) - pos < need:
+            raise MapFormatError(f"{path}: truncated PGM: {len(data) - pos} of {need} bytes")
+        pixels = np.frombuffer(data, dtype=dtype, count=width * height, offset=pos).astype(np.int64)
+    pixels = np.rint(pixels * (255.0 / maxval)) if maxval != 255 else pixels
+    return pixels.reshape(height, width).astype(np.uint8)
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}
+
+
+def _read_png(data, path):
+    pos, chunks, header = 8, [], None
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + length]
+        if len(body) < length:
+            raise MapFormatError(f"{path}: truncated PNG chunk {kind!r}")
+        if kind == b"IHDR":
+            header = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            chunks.append(body)
+        elif kind == b"IEND":
+            break
+        pos += 12 + length
+    if header is None or not chunks:
+        raise MapFormatError(f"{path}: PNG without IHDR or IDAT")
+    width, height, depth, colour, _, _, interlace = header
+    if depth != 8 or colour not in _PNG_CHANNELS or interlace:
+        raise MapFormatError(f"{path}: unsupported PNG (bit depth {depth}, colour type {colour}, "
+                             f"interlace {interlace}); save it as 8-bit grey/RGB(A), not interlaced")
+    channels = _PNG_CHANNELS[colour]
+    try:
+        raw = zlib.decompress(b"".join(chunks))
+    except zlib.error as exc:
+        raise MapFormatError(f"{path}: corrupt PNG data ({exc})") from exc
+    stride = width * channels
+    if len(raw) < height * (stride + 1):
+        raise MapFormatError(f"{path}: truncated PNG data")
+    rows = np.frombuffer(raw, np.uint8, count=height * (stride + 1)).reshape(height, stride + 1)
+    out = np.zeros((height, stride), np.int64)
+    previous = np.zeros(stride, np.int64)
+    for r in range(height):
+        kind, line = rows[r, 0], rows[r, 1:].astype(np.int64)
+        if kind == 0:
+            cur = line
+        elif kind == 2:
+            cur = (line + previous) & 255
+        elif kind in (1, 3, 4):
+            cur = np.zeros(stride, np.int64)
+            for c in range(stride):                    # left-dependent filters: one pixel at a time
+                left = cur[c - channels] if c >= channels else 0
+                up_left = previous[c - channels] if c >= channels else 0
+                if kind == 1:
+                    pred = left
+                elif kind == 3:
+                    pred = (left + previous[c]) // 2
+                else:
+                    pa, pb, pc = abs(previous[c] - up_left), abs(left - up_left), abs(left + previous[c] - 2 * up_left)
+                    pred = left if pa <= pb and pa <= pc else (previous[c] if pb <= pc else up_left)
+                cur[c] = (line[c] + pred) & 255
+        else:
+            raise MapFormatError(f"{path}: corrupt PNG filter type {kind} in row {r}")
+        out[r] = previous = cur
+    image = out.astype(np.uint8).reshape(height, width, channels)
+    return image[..., 0] if channels == 1 else image
+
+
+def write_image(path, pixels):
+    """Save a uint8 image (rows, cols) or (rows, cols, 2|3|4): PGM (P5, grey only) or PNG."""
+    pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
+    try:
+        with open(path, "wb") as f:
+            if path.lower().endswith(".pgm"):
+                if pixels.ndim != 2:
+                    raise ValueError("a PGM image is grey only")
+                f.write(b"P5\n%d %d\n255\n" % (pixels.shape[1], pixels.shape[0]))
+                f.write(pixels.tobytes())
+            else:
+                f.write(_png_bytes(pixels))
+    except OSError as exc:
+        raise MapFileError(f"cannot write image {path!r}: {exc.strerror or exc}") from exc
+
+
+def _png_bytes(pixels):
+    height, width = pixels.shape[:2]
+    channels = 1 if pixels.ndim == 2 else pixels.shape[2]
+    colour = {1: 0, 2: 4, 3: 2, 4: 6}[channels]
+    rows = pixels.reshape(height, width * channels)
+    raw = np.hstack([np.zeros((height, 1), np.uint8), rows]).tobytes()
+
+    def chunk(kind, body):
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, colour, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+
+
+# ---------------------------------------------------------------------------------------------
+# OccupancyGrid-style arrays and NumPy files
+
+
+def to_occupancy_grid(grid: GridMap):
+    """(data, info): int8 occupancy percent (rows, cols), -1 unknown, row 0 at the lowest y, and
+    a dict with resolution, width, height and origin (x, y, yaw), as ``nav_msgs/OccupancyGrid``."""
+    p = grid.prob
+    data = np.where(np.isnan(p), -1, np.rint(100 * np.nan_to_num(p))).astype(np.int8)
+    rows, cols = p.shape
+    return data, {"resolution": grid.resolution, "width": cols, "height": rows, "origin": grid.corner_pose}
+
+
+def from_occupancy_grid(data, resolution, origin=(0.0, 0.0, 0.0), *, width=None, height=None) -> GridMap:
+    """A GridMap from OccupancyGrid data: int8 percent (-1 unknown), flat row-major with ``width``
+    and ``height``, or already (rows, cols)."""
+    arr = np.asarray(data)
+    if arr.ndim == 1:
+        if width is None or height is None or arr.size != width * height:
+            raise MapFormatError(f"flat OccupancyGrid data needs width * height = {arr.size} cells")
+        arr = arr.reshape(height, width)
+    arr = arr.astype(np.int64)
+    if arr.size and (arr.min() < -1 or arr.max() > 100):
+        raise MapFormatError(f"OccupancyGrid values must be -1 or 0..100; got {arr.min()}..{arr.max()}")
+    return GridMap(np.where(arr < 0, np.nan, arr / 100.0), resolution, origin)
+
+
+def save_npz(grid: GridMap, path):
+    """Save probabilities, resolution and corner pose in a NumPy .npz file."""
+    try:
+        np.savez_compressed(path, prob=grid.prob, resolution=grid.resolution, origin=np.array(grid.corner_pose))
+    except OSError as exc:
+        raise MapFileError(f"cannot write {path!r}: {exc.strerror or exc}") from exc
+
+
+def load_npz(path) -> GridMap:
+    """Load a map saved by ``save_npz``."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            return GridMap(f["prob"], float(f["resolution"]), tuple(f["origin"]))
+    except OSError as exc:
+        raise MapFileError(f"cannot read {path!r}: {exc}") from exc
+    except (KeyError, ValueError, zlib.error) as exc:
+        raise MapFormatError(f"{path}: not a taichi_match .npz map ({exc})") from exc
+
+
+def load_map(path, **overrides) -> GridMap:
+    """Any supported map file by its extension: .yaml/.yml (map_server) or .npz."""
+    ext = os.path.splitext(str(path))[1].lower()
+    if ext in (".yaml", ".yml"):
+        return read_ros_map(path, **overrides)
+    if ext == ".npz":
+        return load_npz(path)
+    raise MapFormatError(f"{path}: unsupported map file (use a map_server .yaml or a .npz)")

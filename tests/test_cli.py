@@ -1,0 +1,70 @@
+"""The command line end to end on small maps made here."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import rasterize, room_scene
+from taichi_match import io
+from taichi_match.cli import main
+from taichi_match.merge import merge_maps
+
+
+@pytest.fixture
+def pair(tmp_path):
+    truth = (0.15, -0.1, 0.05)
+    a = rasterize(room_scene, (130, 170), 0.05, (-4.1, -3.1))
+    b = rasterize(room_scene, (120, 160), 0.05, (-4.0, -3.0), pose_a2b=truth)
+    io.write_ros_map(a, tmp_path / "a.yaml")
+    io.write_ros_map(b, tmp_path / "b.yaml")
+    return tmp_path / "a.yaml", tmp_path / "b.yaml", truth
+
+
+def test_align_json_g2o_and_plot(pair, tmp_path, capsys):
+    a, b, truth = pair
+    code = main(["align", str(a), str(b), "--initial", "0", "0", "0", "--json", "--g2o", "3", "4",
+                 "--plot", str(tmp_path / "o.png")])
+    out = capsys.readouterr().out
+    body, edge = out.rsplit("EDGE_SE2", 1)
+    result = json.loads(body)
+    assert code == 0 and result["converged"] and result["status"]
+    assert np.allclose(result["pose"], truth, atol=0.05)
+    assert np.array(result["covariance"]).shape == (3, 3) and result["seconds"] > 0
+    fields = edge.split()
+    assert fields[:2] == ["3", "4"] and len(fields) == 11
+    assert np.allclose([float(v) for v in fields[2:5]], result["pose"], atol=1e-5)
+    assert (tmp_path / "o.png").stat().st_size > 10_000
+
+
+def test_align_exit_codes(pair, tmp_path, capsys):
+    a, b, _ = pair
+    assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--max-iterations", "0"]) == 1
+    assert main(["align", str(a), str(tmp_path / "missing.yaml"), "--initial", "0", "0", "0"]) == 2
+    assert "error" in capsys.readouterr().err
+    assert main(["align", str(a), str(b), "--initial", "1e9", "0", "0"]) == 1      # no overlap: reported
+    with pytest.raises(SystemExit) as exc:
+        main(["align", str(a), str(b), "--initial", "0", "zero", "0"])
+    assert exc.value.code == 2
+
+
+def test_merge_writes_a_map_in_as_frame(pair, tmp_path):
+    a, b, truth = pair
+    out = tmp_path / "merged.yaml"
+    assert main(["merge", str(a), str(b), "--pose", *map(str, truth), "-o", str(out), "--mode", "raw"]) == 0
+    merged = io.read_ros_map(out)
+    grid_a = io.read_ros_map(a)
+    assert merged.resolution == grid_a.resolution
+    assert merged.known.sum() >= grid_a.known.sum()
+    x0, x1, y0, y1 = merged.extent
+    ax0, ax1, ay0, ay1 = grid_a.extent
+    assert x0 <= ax0 and y0 <= ay0 and x1 >= ax1 and y1 >= ay1
+
+
+def test_merge_fuses_in_log_odds_and_respects_unknown():
+    a = io.GridMap(np.array([[0.8, np.nan, 0.3, np.nan]]), 1.0)
+    b = io.GridMap(np.array([[0.8, 0.6, np.nan, np.nan]]), 1.0)
+    m = merge_maps(a, b, (0.0, 0.0, 0.0))
+    assert m.shape == (1, 4)
+    assert m.prob[0, 0] == pytest.approx(0.64 / (0.64 + 0.04))
+    assert m.prob[0, 1] == pytest.approx(0.6) and m.prob[0, 2] == pytest.approx(0.3) and np.isnan(m.prob[0, 3])
