@@ -40,13 +40,17 @@ class MatchOptions:
     blur : width of the blur (sec. 3.2), metres: the Gaussian's standard deviation, or the ramp's
         length for ``blur_kind="ramp"``.
     blur_kind : "gaussian" (normalised convolution over known cells) or "ramp" (see ``_blur``).
-    prior_weight : K of eq. (8), discrepancy (cells x probability) per metre of ||r - r0||.
+    prior_weight : K of eq. (8), discrepancy (cells x probability) per metre of ||r - r0||;
+        None (the default) scales it with B: K = prior_weight_per_cell * (known cells of B).
+    prior_weight_per_cell : K per known cell of B when ``prior_weight`` is None. The discrepancy
+        is a sum over B's cells, so a fixed K would weigh the prior ten times more on a map ten
+        times smaller; 8.6e-4 gives K = 100 on the paper's corridor.
     rotation_scale : L of eq. (7), metres per radian.
     step : finite-difference step eps for x and y (eq. 10-12), metres; None = A's resolution.
     rotation_step : eps for theta, radians; None = step / rotation_scale.
     max_step : longest BFGS step in scaled units (metres), None = max(blur / 2, 4 * step).
     xtol : the optimiser stops when a step is shorter than xtol * step.
-    gtol : ... or when the gradient norm of h is below gtol * prior_weight.
+    gtol : ... or when the gradient norm of h is below gtol * K.
     max_iterations : BFGS iteration budget.
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
@@ -54,7 +58,8 @@ class MatchOptions:
 
     blur: float = 0.5
     blur_kind: Literal["gaussian", "ramp"] = "gaussian"
-    prior_weight: float = 100.0
+    prior_weight: Optional[float] = None
+    prior_weight_per_cell: float = 8.6e-4
     rotation_scale: float = 2.0
     step: Optional[float] = None
     rotation_step: Optional[float] = None
@@ -66,8 +71,10 @@ class MatchOptions:
     engine: Literal["taichi", "numpy"] = "taichi"
 
     def __post_init__(self):
-        for name in ("blur", "prior_weight", "xtol", "gtol", "covariance_scale"):
+        for name in ("blur", "prior_weight_per_cell", "xtol", "gtol", "covariance_scale"):
             _check_number(name, getattr(self, name), minimum=0.0)
+        if self.prior_weight is not None:
+            _check_number("prior_weight", self.prior_weight, minimum=0.0)
         _check_number("rotation_scale", self.rotation_scale, minimum=0.0, strict=True)
         for name in ("step", "rotation_step", "max_step"):
             if getattr(self, name) is not None:
@@ -79,6 +86,12 @@ class MatchOptions:
             raise ValueError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {ENGINES}; got {self.engine!r}")
+
+    def weight(self, known_cells_b):
+        """K of eq. (8) for a map B with ``known_cells_b`` known cells."""
+        if self.prior_weight is not None:
+            return float(self.prior_weight)
+        return self.prior_weight_per_cell * known_cells_b
 
     def steps(self, resolution_a):
         """(eps_x, eps_y, eps_theta) for a map A of the given resolution."""
@@ -104,7 +117,7 @@ class MatchResult:
     information : the 3x3 numeric Hessian of e at ``pose`` (eq. 12), unmodified.
     degenerate : (k, 3) unit vectors in (x, y, theta) along which the maps give (almost) no
         information, e.g. (1, 0, 0) in a corridor along x.
-    cost : h at ``pose`` (eq. 8), on the blurred maps.
+    cost : h at ``pose`` (eq. 8), on the blurred maps; ``prior_weight`` is the K it used.
     discrepancy : e at ``pose`` (eq. 6), on the blurred maps.
     overlap : number of known cells of B that land on known cells of A at ``pose``.
     initial_pose, iterations, evaluations (poses evaluated), launches (batched evaluations),
@@ -118,6 +131,7 @@ class MatchResult:
     cost: float
     discrepancy: float
     overlap: int
+    prior_weight: float
     initial_pose: np.ndarray
     iterations: int
     evaluations: int
@@ -198,6 +212,7 @@ class Matcher:
         prep_b = self.prepare(b, opts.blur, opts.blur_kind)
         engine = make_engine(opts.engine, prep_a, prep_b)
         steps = opts.steps(a.resolution)
+        weight = opts.weight(prep_b.n_known)
         scale = np.array([1.0, 1.0, opts.rotation_scale])          # z = r * scale, all in metres
         launches = 0
         evaluations = 0
@@ -211,7 +226,7 @@ class Matcher:
         def cost(r, with_count=False):
             """h (eq. 8) and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
             values, counts = evaluate(gradient_stencil(r, steps), with_count)
-            p_val, p_grad = prior(r, r0, opts.prior_weight, opts.rotation_scale)
+            p_val, p_grad = prior(r, r0, weight, opts.rotation_scale)
             return values[0] + p_val, gradient_from_stencil(values, steps) + p_grad, counts
 
         def fun_grad(z):                     # in scaled coordinates z = r * scale
@@ -221,7 +236,7 @@ class Matcher:
         def cost_batch(zs):                  # h at a batch of points, one launch (for the polish)
             rs = zs / scale
             e_values, _ = evaluate(rs, with_count=False)
-            return e_values + prior_values(rs, r0, opts.prior_weight, opts.rotation_scale)
+            return e_values + prior_values(rs, r0, weight, opts.rotation_scale)
 
         max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
         h0, grad0, counts0 = cost(r0, with_count=True)
@@ -229,7 +244,7 @@ class Matcher:
             status, r, nit, cost_value = Status.NO_OVERLAP, r0, 0, h0
         else:
             res = minimize_bfgs(fun_grad, r0 * scale, max_step=max_step, xtol=opts.xtol * steps[0],
-                                gtol=opts.gtol * opts.prior_weight, max_iterations=opts.max_iterations,
+                                gtol=opts.gtol * weight, max_iterations=opts.max_iterations,
                                 first=(h0, grad0 / scale, None))
             z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=4.0 * steps[0], xtol=opts.xtol * steps[0],
                                       max_step=max_step)
@@ -242,7 +257,7 @@ class Matcher:
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
         return MatchResult(
             pose=pose, covariance=covariance, information=information, degenerate=degenerate,
-            cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), initial_pose=r0,
+            cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=weight, initial_pose=r0,
             iterations=nit, evaluations=evaluations, launches=launches, converged=status.converged,
             status=status, message=MESSAGES[status], seconds=time.perf_counter() - start, options=opts)
 
