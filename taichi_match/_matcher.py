@@ -28,9 +28,9 @@ __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARI
 
 # The scale s of cov = s H(e)^-1, measured by bench/calibrate_covariance.py: the paper's corridor
 # matched against copies with 0.2 % of their known cells flipped and 10 % turned unknown, default
-# options, 400 matches (seed 1000): 2.206; `taichi-match reproduce` tests it on other trials (NEES).
+# options, 400 matches (seed 1000): 2.373; `taichi-match reproduce` tests it on other trials (NEES).
 # It holds for the default blur, K, L and steps; treat it as indicative elsewhere.
-CALIBRATED_COVARIANCE_SCALE = 2.21
+CALIBRATED_COVARIANCE_SCALE = 2.37
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,8 @@ class MatchOptions:
         times smaller; 8.6e-4 gives K = 100 on the paper's corridor.
     rotation_scale : L of eq. (7), metres per radian.
     step : finite-difference step eps for x and y (eq. 10-12), metres; None = A's resolution.
-    rotation_step : eps for theta, radians; None = step / rotation_scale.
+    rotation_step : eps for theta, radians; None = step / R, where R is the rms distance of B's
+        known cells from B's frame origin (a rotation by eps then moves a typical cell by eps_xy).
     max_step : longest BFGS step in scaled units (metres), None = max(blur / 2, 4 * step).
     xtol : the optimiser stops when a step is shorter than xtol * step.
     gtol : ... or when the gradient norm of h is below gtol * K.
@@ -93,10 +94,11 @@ class MatchOptions:
             return float(self.prior_weight)
         return self.prior_weight_per_cell * known_cells_b
 
-    def steps(self, resolution_a):
-        """(eps_x, eps_y, eps_theta) for a map A of the given resolution."""
+    def steps(self, resolution_a, radius_b):
+        """(eps_x, eps_y, eps_theta) for a map A of the given resolution and a map B whose known
+        cells lie at rms distance ``radius_b`` from its frame's origin."""
         eps = self.step if self.step is not None else resolution_a
-        eps_theta = self.rotation_step if self.rotation_step is not None else eps / self.rotation_scale
+        eps_theta = self.rotation_step if self.rotation_step is not None else eps / radius_b
         return np.array([eps, eps, eps_theta])
 
 
@@ -211,9 +213,11 @@ class Matcher:
         prep_a = self.prepare(a, opts.blur, opts.blur_kind)
         prep_b = self.prepare(b, opts.blur, opts.blur_kind)
         engine = make_engine(opts.engine, prep_a, prep_b)
-        steps = opts.steps(a.resolution)
+        steps = opts.steps(a.resolution, prep_b.radius)
         weight = opts.weight(prep_b.n_known)
-        scale = np.array([1.0, 1.0, opts.rotation_scale])          # z = r * scale, all in metres
+        # the optimiser works in z = r * scale, all in metres: theta times B's rms radius, so that
+        # a unit step moves a typical cell of B by about a metre whichever way it goes
+        scale = np.array([1.0, 1.0, prep_b.radius])
         launches = 0
         evaluations = 0
 
@@ -252,7 +256,7 @@ class Matcher:
         values, counts = evaluate(hessian_stencil(r, steps))
         e, overlap = values[0], counts[0]
         information = hessian_from_stencil(values, steps)
-        covariance, degenerate = covariance_from_hessian(information, opts.rotation_scale,
+        covariance, degenerate = covariance_from_hessian(information, prep_b.radius,
                                                          scale=opts.covariance_scale)
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
         return MatchResult(

@@ -36,6 +36,11 @@ class PreparedMap:
         last = known.shape[1] - known[rows][:, ::-1].argmax(axis=1)
         self.rows = np.ascontiguousarray(np.column_stack([rows, first, last]), dtype=np.int32)  # (R, 3)
         self.n_known = int(known.sum())
+        # rms distance of the known cells from the map frame's origin: a rotation by d theta moves
+        # a typical cell by radius * d theta (at least one cell, for maps of a single cell)
+        centres = grid.cell_centres()[known]
+        self.radius = max(float(np.sqrt(np.mean(np.sum(centres**2, axis=1)))) if len(centres) else 0.0,
+                          grid.resolution)
 
     def __repr__(self):
         return f"PreparedMap({self.grid!r}, blur {self.blur_kind} {self.blur_width} m)"

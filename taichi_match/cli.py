@@ -175,7 +175,7 @@ def main(argv=None):
     rep = sub.add_parser("reproduce", help="regenerate the paper's tables and figures and the covariance check")
     rep.add_argument("--out", required=True, metavar="DIR", help="output folder")
     rep.add_argument("--trials", type=int, default=100, help="trials per table row (default: %(default)s)")
-    rep.add_argument("--covariance-trials", type=int, default=200,
+    rep.add_argument("--covariance-trials", type=int, default=300,
                      help="matches per noise level of the covariance check (default: %(default)s)")
     rep.add_argument("--seed", type=int, default=0, help="seed of the initial poses and noise (default: %(default)s)")
     rep.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")

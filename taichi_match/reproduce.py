@@ -48,7 +48,7 @@ def _progress(callback, total):
     return step
 
 
-def reproduce(out_dir, *, trials=100, covariance_trials=200, seed=0, surface_step=0.2, progress=None,
+def reproduce(out_dir, *, trials=100, covariance_trials=300, seed=0, surface_step=0.2, progress=None,
               options=None):
     """Run Tables 1-2, Figs. 2-9 and the covariance check; write them under ``out_dir``.
 
