@@ -27,7 +27,7 @@ from ._grid import GridMap
 
 __all__ = [
     "read_ros_map", "write_ros_map", "read_image", "write_image", "to_occupancy_grid", "from_occupancy_grid",
-    "save_npz", "load_npz", "load_map",
+    "save_npz", "load_npz", "save_npy", "load_npy", "load_map",
 ]
 
 MODES = ("trinary", "scale", "raw")
@@ -389,11 +389,38 @@ def load_npz(path) -> GridMap:
         raise MapFormatError(f"{path}: not a taichi_match .npz map ({exc})") from exc
 
 
+def save_npy(grid: GridMap, path):
+    """Save the OccupancyGrid-style int8 array (-1 unknown, 0..100, row 0 at the lowest y) in a .npy
+    file; the resolution and origin are not stored (use ``save_npz`` to keep them)."""
+    try:
+        np.save(path, to_occupancy_grid(grid)[0])
+    except OSError as exc:
+        raise MapFileError(f"cannot write {path!r}: {exc.strerror or exc}") from exc
+
+
+def load_npy(path, *, resolution, origin=(0.0, 0.0, 0.0)) -> GridMap:
+    """Load a .npy array: int8 occupancy percent (-1 unknown), or float probabilities (NaN unknown)."""
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except OSError as exc:
+        raise MapFileError(f"cannot read {path!r}: {exc}") from exc
+    except ValueError as exc:
+        raise MapFormatError(f"{path}: not a NumPy array file ({exc})") from exc
+    if np.issubdtype(arr.dtype, np.integer):
+        return from_occupancy_grid(arr, resolution, origin)
+    return GridMap(arr, resolution, origin)
+
+
 def load_map(path, **overrides) -> GridMap:
-    """Any supported map file by its extension: .yaml/.yml (map_server) or .npz."""
+    """Any supported map file by its extension: .yaml/.yml (map_server), .npz, or .npy (which needs
+    ``resolution=`` and optionally ``origin=``)."""
     ext = os.path.splitext(str(path))[1].lower()
     if ext in (".yaml", ".yml"):
         return read_ros_map(path, **overrides)
     if ext == ".npz":
         return load_npz(path)
-    raise MapFormatError(f"{path}: unsupported map file (use a map_server .yaml or a .npz)")
+    if ext == ".npy":
+        if "resolution" not in overrides:
+            raise MapFormatError(f"{path}: a .npy map needs its resolution (and origin) given separately")
+        return load_npy(path, resolution=overrides["resolution"], origin=overrides.get("origin", (0.0, 0.0, 0.0)))
+    raise MapFormatError(f"{path}: unsupported map file (use a map_server .yaml, a .npz or a .npy)")

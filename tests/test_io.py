@@ -137,6 +137,11 @@ def test_occupancy_grid_and_npz_round_trips(tmp_path):
     assert np.array_equal(loaded.prob, prob, equal_nan=True) and loaded.corner_pose == g.corner_pose
     with pytest.raises(MapFormatError):
         io.load_map(tmp_path / "g.txt")
+    io.save_npy(g, tmp_path / "g.npy")
+    from_npy = io.load_map(tmp_path / "g.npy", resolution=0.05, origin=(0.5, -0.5, 0.3))
+    assert np.allclose(from_npy.prob, prob, equal_nan=True)
+    with pytest.raises(MapFormatError, match="resolution"):
+        io.load_map(tmp_path / "g.npy")
 
 
 # The shares of free / occupied / unknown cells SOURCES.md gives for each map with its own YAML
