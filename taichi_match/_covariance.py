@@ -1,8 +1,8 @@
 """Eq. (11): the covariance of the pose from the numeric Hessian of the discrepancy.
 
 ``cov(r*) ~ H(e)^-1``. In a corridor, at a kink or with little overlap, H is singular or
-indefinite. We compare its eigenvalues in scaled coordinates (theta multiplied by the rotation
-scale L, so every axis is in metres): a direction whose curvature is below ``degenerate_rtol``
+indefinite. We compare its eigenvalues in scaled coordinates (theta multiplied by a length, the
+matcher's B rms radius, so every axis is in metres): a direction whose curvature is below ``degenerate_rtol``
 times the largest is reported as degenerate, and every eigenvalue is floored at ``floor_rtol``
 times the largest (and at an absolute ``floor_abs``) before inversion, so an unconstrained
 direction shows as a very large but finite variance, never NaN.
