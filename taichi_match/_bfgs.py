@@ -4,8 +4,7 @@ It minimises ``f(z)`` given a callback returning the value and gradient at z (on
 for the centre and the stencil), in scaled coordinates where every component is in metres
 (theta multiplied by a length: the matcher uses B's rms radius). Steps are capped at
 ``max_step``; a backtracking Armijo line search evaluates value and gradient together, so an
-accepted trial point already
-carries the gradient of the next iteration.
+accepted trial point already carries the gradient of the next iteration.
 
 The cost is piecewise smooth: with nearest-cell lookup it is a fine staircase, and at an exact
 alignment it has a kink. Stopping rules therefore do not wait for a zero gradient alone:
