@@ -52,7 +52,10 @@ class MatchOptions:
     max_step : longest BFGS step in scaled units (metres), None = max(blur / 2, 4 * step).
     xtol : the optimiser stops when a step is shorter than xtol * step.
     gtol : ... or when the gradient norm of h is below gtol * K.
-    max_iterations : BFGS iteration budget.
+    max_iterations : BFGS iteration budget (per pyramid level).
+    levels : pyramid levels for coarse-to-fine matching: 1 runs the paper's method on the maps as
+        given; n > 1 first minimises on copies with cells 2**(n-1), ..., 2 times larger and
+        finishes on the given maps, where the covariance is always taken.
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
     """
@@ -68,6 +71,7 @@ class MatchOptions:
     xtol: float = 0.05
     gtol: float = 1e-3
     max_iterations: int = 100
+    levels: int = 1
     covariance_scale: float = 1.0
     engine: Literal["taichi", "numpy"] = "taichi"
 
@@ -83,6 +87,8 @@ class MatchOptions:
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, (int, np.integer)) \
                 or self.max_iterations < 0:
             raise ValueError(f"max_iterations must be an integer >= 0; got {self.max_iterations!r}")
+        if isinstance(self.levels, bool) or not isinstance(self.levels, (int, np.integer)) or not 1 <= self.levels <= 8:
+            raise ValueError(f"levels must be an integer in 1..8; got {self.levels!r}")
         if self.blur_kind not in BLUR_KINDS:
             raise ValueError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
         if self.engine not in ENGINES:
@@ -212,14 +218,56 @@ class Matcher:
         r0[2] = wrap_angle(r0[2])
         prep_a = self.prepare(a, opts.blur, opts.blur_kind)
         prep_b = self.prepare(b, opts.blur, opts.blur_kind)
-        engine = make_engine(opts.engine, prep_a, prep_b)
-        steps = opts.steps(a.resolution, prep_b.radius)
-        weight = opts.weight(prep_b.n_known)
-        # the optimiser works in z = r * scale, all in metres: theta times B's rms radius, so that
-        # a unit step moves a typical cell of B by about a metre whichever way it goes
-        scale = np.array([1.0, 1.0, prep_b.radius])
+        full_weight = opts.weight(prep_b.n_known)
         launches = 0
         evaluations = 0
+        r, status, nit, cost_value = r0, Status.MAX_ITERATIONS, 0, 0.0
+        for level in reversed(range(opts.levels)):        # coarse to fine; level 0: the given maps
+            pa, pb = prep_a.level(level), prep_b.level(level)
+            engine = make_engine(opts.engine, pa, pb)
+            steps = opts.steps(pa.grid.resolution, prep_b.radius)
+            # e is a sum over B's cells: K follows the number of cells at this level
+            weight = full_weight * pb.n_known / max(prep_b.n_known, 1)
+            # the optimiser works in z = r * scale, all in metres: theta times B's rms radius, so
+            # that a unit step moves a typical cell of B by about a metre whichever way it goes
+            scale = np.array([1.0, 1.0, prep_b.radius])
+
+            def evaluate(poses, with_count=True):
+                nonlocal launches, evaluations
+                launches += 1
+                evaluations += len(poses)
+                return engine(poses, with_count)
+
+            def cost(r, with_count=False):
+                """h (eq. 8) and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
+                values, counts = evaluate(gradient_stencil(r, steps), with_count)
+                p_val, p_grad = prior(r, r0, weight, opts.rotation_scale)
+                return values[0] + p_val, gradient_from_stencil(values, steps) + p_grad, counts
+
+            def fun_grad(z):                     # in scaled coordinates z = r * scale
+                h, grad, _ = cost(z / scale)
+                return h, grad / scale, None
+
+            def cost_batch(zs):                  # h at a batch of points, one launch (for the polish)
+                rs = zs / scale
+                e_values, _ = evaluate(rs, with_count=False)
+                return e_values + prior_values(rs, r0, weight, opts.rotation_scale)
+
+            max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
+            h_start, grad_start, counts = cost(r, with_count=True)
+            if counts[0] == 0 and level == opts.levels - 1:
+                status, cost_value = Status.NO_OVERLAP, h_start
+                break
+            res = minimize_bfgs(fun_grad, r * scale, max_step=max_step, xtol=opts.xtol * steps[0],
+                                gtol=opts.gtol * weight, max_iterations=opts.max_iterations,
+                                first=(h_start, grad_start / scale, None))
+            z, cost_value = res.z, res.fun
+            if level == 0:
+                z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=4.0 * steps[0],
+                                          xtol=opts.xtol * steps[0], max_step=max_step)
+            r, status, nit = z / scale, res.status, nit + res.nit
+        engine = make_engine(opts.engine, prep_a, prep_b)
+        steps = opts.steps(a.resolution, prep_b.radius)
 
         def evaluate(poses, with_count=True):
             nonlocal launches, evaluations
@@ -227,32 +275,6 @@ class Matcher:
             evaluations += len(poses)
             return engine(poses, with_count)
 
-        def cost(r, with_count=False):
-            """h (eq. 8) and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
-            values, counts = evaluate(gradient_stencil(r, steps), with_count)
-            p_val, p_grad = prior(r, r0, weight, opts.rotation_scale)
-            return values[0] + p_val, gradient_from_stencil(values, steps) + p_grad, counts
-
-        def fun_grad(z):                     # in scaled coordinates z = r * scale
-            h, grad, _ = cost(z / scale)
-            return h, grad / scale, None
-
-        def cost_batch(zs):                  # h at a batch of points, one launch (for the polish)
-            rs = zs / scale
-            e_values, _ = evaluate(rs, with_count=False)
-            return e_values + prior_values(rs, r0, weight, opts.rotation_scale)
-
-        max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
-        h0, grad0, counts0 = cost(r0, with_count=True)
-        if counts0[0] == 0:
-            status, r, nit, cost_value = Status.NO_OVERLAP, r0, 0, h0
-        else:
-            res = minimize_bfgs(fun_grad, r0 * scale, max_step=max_step, xtol=opts.xtol * steps[0],
-                                gtol=opts.gtol * weight, max_iterations=opts.max_iterations,
-                                first=(h0, grad0 / scale, None))
-            z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=4.0 * steps[0], xtol=opts.xtol * steps[0],
-                                      max_step=max_step)
-            r, status, nit = z / scale, res.status, res.nit
         values, counts = evaluate(hessian_stencil(r, steps))
         e, overlap = values[0], counts[0]
         information = hessian_from_stencil(values, steps)
@@ -261,7 +283,8 @@ class Matcher:
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
         return MatchResult(
             pose=pose, covariance=covariance, information=information, degenerate=degenerate,
-            cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=weight, initial_pose=r0,
+            cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
+            initial_pose=r0,
             iterations=nit, evaluations=evaluations, launches=launches, converged=status.converged,
             status=status, message=MESSAGES[status], seconds=time.perf_counter() - start, options=opts)
 

@@ -11,6 +11,7 @@ from ._blur import blur
 from ._cost import affine_coefficients
 from ._grid import GridMap
 from ._kernels import TaichiEngine
+from ._pyramid import coarsen
 from ._reference import NumpyDiscrepancy
 
 __all__ = ["PreparedMap", "make_engine", "ENGINES"]
@@ -41,6 +42,21 @@ class PreparedMap:
         centres = grid.cell_centres()[known]
         self.radius = max(float(np.sqrt(np.mean(np.sum(centres**2, axis=1)))) if len(centres) else 0.0,
                           grid.resolution)
+
+        self._coarser = None
+
+    def coarser(self):
+        """The next level of the pyramid: the map with cells twice as large, blurred alike (cached)."""
+        if self._coarser is None:
+            self._coarser = PreparedMap(coarsen(self.grid), self.blur_width, self.blur_kind)
+        return self._coarser
+
+    def level(self, k):
+        """Level ``k`` of the pyramid (0: this map)."""
+        prepared = self
+        for _ in range(k):
+            prepared = prepared.coarser()
+        return prepared
 
     def __repr__(self):
         return f"PreparedMap({self.grid!r}, blur {self.blur_kind} {self.blur_width} m)"

@@ -155,3 +155,19 @@ def test_calibrated_covariance_uses_the_published_scale(corridor_map, matcher):
 
     res = matcher.match(corridor_map, corridor_map, (0.1, 0.2, 0.05), covariance_scale=4.0)
     assert np.allclose(res.calibrated_covariance, res.covariance / 4.0 * CALIBRATED_COVARIANCE_SCALE)
+
+
+def test_coarse_to_fine_levels_reach_the_same_answer(corridor_map):
+    from taichi_match._pyramid import coarsen
+
+    g = coarsen(corridor_map)
+    assert g.shape == (240, 240) and g.resolution == 0.05 and g.corner_pose == corridor_map.corner_pose
+    block = corridor_map.prob[118:120, 10:12]                     # a block with a wall row and free/unknown
+    expected = np.nanmean(block) if np.any(~np.isnan(block)) else np.nan
+    assert np.allclose(g.prob[59, 5], expected, equal_nan=True)
+    rng = np.random.default_rng(8)
+    matcher = Matcher(levels=3)
+    for _ in range(5):
+        r0 = rng.uniform(-1, 1, 3) * (1.5, 1.5, 0.38)
+        res = matcher.match(corridor_map, corridor_map, r0)
+        assert res.converged and abs(res.pose[1]) < 0.025 and abs(res.pose[2]) < 0.045
