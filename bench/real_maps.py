@@ -144,7 +144,7 @@ def main():
     options = {}
     for item in args.option:
         key, _, value = item.partition("=")
-        options[key] = value if key == "blur_kind" else float(value)
+        options[key] = value if key == "blur_kind" else int(value) if key in ("levels", "max_iterations") else float(value)
     if not MAPS.is_dir():
         raise SystemExit(f"{MAPS} not found: the real maps live in ../shared/maps")
     try:

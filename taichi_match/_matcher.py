@@ -54,8 +54,9 @@ class MatchOptions:
     gtol : ... or when the gradient norm of h is below gtol * K.
     max_iterations : BFGS iteration budget (per pyramid level).
     levels : pyramid levels for coarse-to-fine matching: 1 runs the paper's method on the maps as
-        given; n > 1 first minimises on copies with cells 2**(n-1), ..., 2 times larger and
-        finishes on the given maps, where the covariance is always taken.
+        given; n > 1 runs BFGS on a copy with cells 2**(n-1) times larger, then refines with the
+        compass search level by level down to the given maps, where the covariance is always
+        taken (measured on the corridor with 3 levels: about half the time, Table 1 unchanged).
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
     """
@@ -258,13 +259,17 @@ class Matcher:
             if counts[0] == 0 and level == opts.levels - 1:
                 status, cost_value = Status.NO_OVERLAP, h_start
                 break
+            if level < opts.levels - 1:
+                # from a coarser level's answer, within about a coarse cell: the compass search alone
+                z, cost_value, _ = polish(cost_batch, r * scale, h_start, step=4.0 * steps[0],
+                                          xtol=opts.xtol * steps[0], max_step=max_step)
+                r = z / scale
+                continue
             res = minimize_bfgs(fun_grad, r * scale, max_step=max_step, xtol=opts.xtol * steps[0],
                                 gtol=opts.gtol * weight, max_iterations=opts.max_iterations,
                                 first=(h_start, grad_start / scale, None))
-            z, cost_value = res.z, res.fun
-            if level == 0:
-                z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=4.0 * steps[0],
-                                          xtol=opts.xtol * steps[0], max_step=max_step)
+            z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=4.0 * steps[0],
+                                      xtol=opts.xtol * steps[0], max_step=max_step)
             r, status, nit = z / scale, res.status, nit + res.nit
         engine = make_engine(opts.engine, prep_a, prep_b)
         steps = opts.steps(a.resolution, prep_b.radius)
