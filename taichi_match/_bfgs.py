@@ -35,6 +35,7 @@ class Status(enum.IntEnum):
     NO_DESCENT = 2
     MAX_ITERATIONS = 3
     NO_OVERLAP = 4
+    SEPARATED = 5
 
     @property
     def converged(self):
@@ -48,6 +49,8 @@ MESSAGES = {
     Status.MAX_ITERATIONS: "not converged: maximum number of iterations reached",
     Status.NO_OVERLAP: "not matched: the maps do not overlap at the initial pose (no known cell of B "
                        "falls on a known cell of A)",
+    Status.SEPARATED: "not matched: the minimum found has no overlap; B was pushed off A, so near the "
+                      "initial pose no overlapping placement is free of conflicts (check the maps and r0)",
 }
 
 

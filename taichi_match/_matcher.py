@@ -282,6 +282,8 @@ class Matcher:
 
         values, counts = evaluate(hessian_stencil(r, steps))
         e, overlap = values[0], counts[0]
+        if overlap == 0 and status.converged:
+            status = Status.SEPARATED
         information = hessian_from_stencil(values, steps)
         covariance, degenerate = covariance_from_hessian(information, prep_b.radius,
                                                          scale=opts.covariance_scale)

@@ -171,3 +171,14 @@ def test_coarse_to_fine_levels_reach_the_same_answer(corridor_map):
         r0 = rng.uniform(-1, 1, 3) * (1.5, 1.5, 0.38)
         res = matcher.match(corridor_map, corridor_map, r0)
         assert res.converged and abs(res.pose[1]) < 0.025 and abs(res.pose[2]) < 0.045
+
+
+def test_a_minimum_without_overlap_is_reported_as_separated():
+    rng = np.random.default_rng(21)
+    strip = GridMap(rng.random((1, 500)), 0.05)                 # one row: any shift in y separates
+    statuses = []
+    for r0 in ((0.0, 0.0, 0.0), (0.05, 0.01, 0.0), (-0.1, -0.01, 0.0)):
+        res = match(strip, strip, r0)
+        assert res.overlap > 0 or (res.status == Status.SEPARATED and not res.converged)
+        statuses.append(res.status)
+    assert Status.SEPARATED in statuses
