@@ -213,7 +213,7 @@ def main():
     lines = [f"# Real-time figures", "",
              f"`python bench/realtime.py{' --quick' if q else ''}` at revision {git_revision()} on "
              f"{datetime.date.today()}: {platform.machine()}, {os.cpu_count()} cores, Python "
-             f"{platform.python_version()}. Targets from the real-time issue in brackets.", ""]
+             f"{platform.python_version()}. Targets from the real-time issue in the last column.", ""]
 
     def emit(text=""):
         print(text, flush=True)
