@@ -53,10 +53,11 @@ class MatchOptions:
     xtol : the optimiser stops when a step is shorter than xtol * step.
     gtol : ... or when the gradient norm of h is below gtol * K.
     max_iterations : BFGS iteration budget (per pyramid level).
-    levels : pyramid levels for coarse-to-fine matching: 1 runs the paper's method on the maps as
-        given; n > 1 runs BFGS on a copy with cells 2**(n-1) times larger, then refines with the
-        compass search level by level down to the given maps, where the covariance is always
-        taken (measured on the corridor with 3 levels: about half the time, Table 1 unchanged).
+    levels : pyramid levels for coarse-to-fine matching: 1 runs BFGS on the maps as given; n > 1
+        runs BFGS on a copy with cells 2**(n-1) times larger, the compass search on the levels
+        between, and on the given maps at most ``refine_iterations`` BFGS steps of up to two cells
+        before the compass search. The covariance is always taken on the given maps.
+    refine_iterations : BFGS iterations on the given maps after a coarser level (levels > 1).
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
     """
@@ -72,7 +73,8 @@ class MatchOptions:
     xtol: float = 0.05
     gtol: float = 1e-3
     max_iterations: int = 100
-    levels: int = 1
+    levels: int = 3
+    refine_iterations: int = 3
     covariance_scale: float = 1.0
     engine: Literal["taichi", "numpy"] = "taichi"
 
@@ -90,6 +92,9 @@ class MatchOptions:
             raise ValueError(f"max_iterations must be an integer >= 0; got {self.max_iterations!r}")
         if isinstance(self.levels, bool) or not isinstance(self.levels, (int, np.integer)) or not 1 <= self.levels <= 8:
             raise ValueError(f"levels must be an integer in 1..8; got {self.levels!r}")
+        if isinstance(self.refine_iterations, bool) or not isinstance(self.refine_iterations, (int, np.integer)) \
+                or self.refine_iterations < 0:
+            raise ValueError(f"refine_iterations must be an integer >= 0; got {self.refine_iterations!r}")
         if self.blur_kind not in BLUR_KINDS:
             raise ValueError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
         if self.engine not in ENGINES:
@@ -259,12 +264,22 @@ class Matcher:
             if counts[0] == 0 and level == opts.levels - 1:
                 status, cost_value = Status.NO_OVERLAP, h_start
                 break
-            if level < opts.levels - 1:
+            if level > 0 and level < opts.levels - 1:
                 # from a coarser level's answer, within about a coarse cell: the compass search alone
                 z, cost_value, _ = polish(cost_batch, r * scale, h_start, step=4.0 * steps[0],
                                           xtol=opts.xtol * steps[0], max_step=max_step)
                 r = z / scale
                 continue
+            if level == 0 and opts.levels > 1:
+                # the given maps: a few BFGS steps of at most two cells, then the compass search
+                res = minimize_bfgs(fun_grad, r * scale, max_step=2.0 * steps[0], xtol=opts.xtol * steps[0],
+                                    gtol=opts.gtol * weight,
+                                    max_iterations=min(opts.refine_iterations, opts.max_iterations),
+                                    first=(h_start, grad_start / scale, None))
+                z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=steps[0], xtol=opts.xtol * steps[0],
+                                          max_step=max_step)
+                r, nit = z / scale, nit + res.nit
+                break
             res = minimize_bfgs(fun_grad, r * scale, max_step=max_step, xtol=opts.xtol * steps[0],
                                 gtol=opts.gtol * weight, max_iterations=opts.max_iterations,
                                 first=(h_start, grad_start / scale, None))

@@ -102,9 +102,11 @@ def test_no_overlap_is_reported_not_raised():
     assert "overlap" in res.message
 
 
-def test_iteration_budget_is_reported_not_raised(corridor_map, matcher):
-    res = matcher.match(corridor_map, corridor_map, (0.0, 0.8, 0.3), max_iterations=1)
-    assert res.status == Status.MAX_ITERATIONS and not res.converged and res.iterations == 1
+@pytest.mark.parametrize("levels", [1, 3])
+def test_iteration_budget_is_reported_not_raised(corridor_map, matcher, levels):
+    res = matcher.match(corridor_map, corridor_map, (0.0, 0.8, 0.3), max_iterations=1, levels=levels)
+    assert res.status == Status.MAX_ITERATIONS and not res.converged
+    assert res.iterations == (1 if levels == 1 else 2)          # one per BFGS run: coarsest and given maps
     assert np.all(np.isfinite(res.pose))
 
 
@@ -146,8 +148,8 @@ def test_evaluation_counts_stay_small_on_a_fixed_problem(corridor_map, matcher):
     assert res.converged
     assert abs(res.pose[0] - 0.9) < 0.01
     assert res.iterations <= 30
-    assert res.launches <= 2 * res.iterations + 15
-    assert 13 * res.launches <= res.evaluations <= 25 * res.launches
+    assert res.launches <= 60
+    assert 6 * res.launches <= res.evaluations <= 25 * res.launches
 
 
 def test_calibrated_covariance_uses_the_published_scale(corridor_map, matcher):
