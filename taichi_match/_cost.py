@@ -28,22 +28,20 @@ def affine_coefficients(poses, a: GridMap, b: GridMap, pad=1):
     pose (eq. 4), and into A's grid by the inverse of A's corner pose and resolution (eq. 3).
     """
     poses = np.asarray(poses, dtype=np.float64)
-    x, y, theta = poses[:, 0], poses[:, 1], poses[:, 2]
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     bx, by, b_yaw = b.corner_pose
     ax, ay, a_yaw = a.corner_pose
     ratio = b.resolution / a.resolution
-    phi = theta + b_yaw - a_yaw                                  # B's grid axes in A's grid
-    m00, m01 = np.cos(phi) * ratio, -np.sin(phi) * ratio
-    m10, m11 = np.sin(phi) * ratio, np.cos(phi) * ratio
-    # B's corner in A's frame, then in A's grid (cells)
-    cx = np.cos(theta) * bx - np.sin(theta) * by + x - ax
-    cy = np.sin(theta) * bx + np.cos(theta) * by + y - ay
-    ca, sa = np.cos(a_yaw), np.sin(a_yaw)
-    u0 = (ca * cx + sa * cy) / a.resolution + pad
-    v0 = (-sa * cx + ca * cy) / a.resolution + pad
-    out = np.empty((len(poses), 6))
-    out[:, 0], out[:, 1], out[:, 2] = m00, m01, u0 + 0.5 * (m00 + m01)      # cell centres: + 1/2
-    out[:, 3], out[:, 4], out[:, 5] = m10, m11, v0 + 0.5 * (m10 + m11)
+    cd, sd = np.cos(b_yaw - a_yaw), np.sin(b_yaw - a_yaw)
+    m00 = (c * cd - s * sd) * ratio                 # B's grid axes in A's grid: theta + yaw_B - yaw_A
+    m10 = (s * cd + c * sd) * ratio
+    cx = c * bx - s * by + (poses[:, 0] - ax)       # B's corner in A's frame, then in A's grid (cells)
+    cy = s * bx + c * by + (poses[:, 1] - ay)
+    ca, sa = np.cos(a_yaw) / a.resolution, np.sin(a_yaw) / a.resolution
+    u0 = ca * cx + sa * cy + pad
+    v0 = ca * cy - sa * cx + pad
+    # cell centres: + 1/2 cell along both of B's axes
+    out = np.column_stack([m00, -m10, u0 + 0.5 * (m00 - m10), m10, m00, v0 + 0.5 * (m10 + m00)])
     return out
 
 
