@@ -160,3 +160,34 @@ def test_every_shared_map_loads_with_the_documented_shares(name):
     p = g.prob
     shares = (100 * np.mean(p == 0.0), 100 * np.mean(p == 1.0), 100 * np.mean(np.isnan(p)))
     assert np.allclose(shares, SOURCES_SHARES[name], atol=0.06)
+
+
+@pytest.mark.parametrize("image", ["m.pgm", "m.png"])
+def test_mutated_map_files_raise_only_documented_errors(tmp_path, image):
+    """A seeded fuzz pass: flip, cut or insert bytes of a valid map's image and YAML."""
+    from taichi_match import InvalidMapError
+
+    rng = np.random.default_rng(99)
+    prob = np.full((9, 11), np.nan)
+    prob[2:7, 1:10] = 0.0
+    prob[2, 1:10] = 1.0
+    io.write_ros_map(grid_with(prob), tmp_path / "m.yaml", image=image)
+    originals = {name: (tmp_path / name).read_bytes() for name in ("m.yaml", image)}
+    for trial in range(150):
+        name = ("m.yaml", image)[trial % 2]
+        data = bytearray(originals[name])
+        kind = rng.integers(3)
+        pos = int(rng.integers(len(data)))
+        if kind == 0:
+            data[pos] = int(rng.integers(256))
+        elif kind == 1:
+            del data[pos:pos + int(rng.integers(1, 40))]
+        else:
+            data[pos:pos] = bytes(rng.integers(0, 256, int(rng.integers(1, 8)), dtype=np.uint8))
+        (tmp_path / name).write_bytes(bytes(data))
+        try:
+            g = io.read_ros_map(tmp_path / "m.yaml")
+            assert isinstance(g, GridMap)
+        except (MapFileError, MapFormatError, InvalidMapError):
+            pass
+        (tmp_path / name).write_bytes(originals[name])
