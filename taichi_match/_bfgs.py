@@ -36,6 +36,7 @@ class Status(enum.IntEnum):
     MAX_ITERATIONS = 3
     NO_OVERLAP = 4
     SEPARATED = 5
+    NO_INFORMATION = 6
 
     @property
     def converged(self):
@@ -51,6 +52,8 @@ MESSAGES = {
                        "falls on a known cell of A)",
     Status.SEPARATED: "not matched: the minimum found has no overlap; B was pushed off A, so near the "
                       "initial pose no overlapping placement is free of conflicts (check the maps and r0)",
+    Status.NO_INFORMATION: "not matched: the discrepancy is flat in every direction here (no structure "
+                           "in the overlap), so the maps say nothing about the pose",
 }
 
 

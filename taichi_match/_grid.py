@@ -20,7 +20,9 @@ import numpy as np
 
 from ._errors import InvalidMapError
 
-__all__ = ["GridMap"]
+__all__ = ["GridMap", "MAX_CELLS"]
+
+MAX_CELLS = 2**31 - 1 - 4 * 65536      # cells of a map, padding included, must fit 32-bit indices
 
 
 class GridMap:
@@ -134,7 +136,14 @@ def _check_prob(prob):
         raise InvalidMapError(f"prob must be 2-D (rows, cols); got {arr.ndim}-D with shape {arr.shape}")
     if arr.shape[0] < 1 or arr.shape[1] < 1:
         raise InvalidMapError(f"prob must have at least one row and one column; got shape {arr.shape}")
-    arr = np.array(arr, dtype=np.float64, copy=True)
+    if arr.size > MAX_CELLS:
+        raise InvalidMapError(f"a map of {arr.shape[0]} x {arr.shape[1]} cells is too large: at most {MAX_CELLS} "
+                              f"cells (the kernels index cells with 32-bit integers); crop or coarsen it")
+    try:
+        arr = np.array(arr, dtype=np.float64, copy=True)
+    except MemoryError as exc:
+        raise InvalidMapError(f"not enough memory for a map of {arr.shape[0]} x {arr.shape[1]} cells "
+                              f"({arr.size * 8 / 2**30:.1f} GiB as float64); crop or coarsen it") from exc
     if np.isinf(arr).any():
         raise InvalidMapError("prob holds infinite values; use NaN for unknown cells and [0, 1] otherwise")
     finite = arr[~np.isnan(arr)]

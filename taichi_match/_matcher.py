@@ -302,6 +302,8 @@ class Matcher:
         information = hessian_from_stencil(values, steps)
         covariance, degenerate = covariance_from_hessian(information, prep_b.radius,
                                                          scale=opts.covariance_scale)
+        if len(degenerate) == 3 and status.converged:
+            status = Status.NO_INFORMATION
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
         return MatchResult(
             pose=pose, covariance=covariance, information=information, degenerate=degenerate,

@@ -207,7 +207,7 @@ def main(argv=None):
 
     try:
         return args.func(args)
-    except (TaichiMatchError, ValueError) as exc:
+    except (TaichiMatchError, ValueError, OSError) as exc:
         print(f"taichi-match: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 

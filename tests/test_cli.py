@@ -43,6 +43,7 @@ def test_align_exit_codes(pair, tmp_path, capsys):
     assert main(["align", str(a), str(tmp_path / "missing.yaml"), "--initial", "0", "0", "0"]) == 2
     assert "error" in capsys.readouterr().err
     assert main(["align", str(a), str(b), "--initial", "1e9", "0", "0"]) == 1      # no overlap: reported
+    assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--plot", str(tmp_path / "no" / "o.png")]) == 2
     with pytest.raises(SystemExit) as exc:
         main(["align", str(a), str(b), "--initial", "0", "zero", "0"])
     assert exc.value.code == 2

@@ -6,6 +6,7 @@ import sys
 import textwrap
 
 import numpy as np
+import pytest
 
 from conftest import random_map
 from taichi_match import GridMap, Matcher, discrepancy
@@ -142,3 +143,36 @@ def test_matches_from_several_threads_equal_serial_ones():
     with ThreadPoolExecutor(max_workers=4) as pool:
         threaded = list(pool.map(lambda r0: matcher.match(grid, grid, r0).pose, starts))
     assert all(np.array_equal(s, t) for s, t in zip(serial, threaded))
+
+
+def test_a_spawn_process_pool_gives_the_serial_answers():
+    """Process pools must use 'spawn' (or 'forkserver'): a child forked after Taichi started hangs."""
+    import multiprocessing
+
+    from _pool_worker import match_pose
+
+    starts = [tuple(r) for r in np.random.default_rng(9).uniform(-1, 1, (4, 3)) * (0.4, 0.4, 0.15)]
+    serial = [match_pose(r0) for r0 in starts]
+    with multiprocessing.get_context("spawn").Pool(2) as pool:
+        parallel = pool.map(match_pose, starts)
+    assert parallel == serial
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads VmRSS from /proc (Linux)")
+def test_resident_memory_stays_flat_over_repeated_matches():
+    """The short version of bench/realtime.py's 10,000-match check."""
+    from taichi_match.scenes import corridor
+
+    def rss_kib():
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmRSS:"))
+
+    grid = corridor(size=4.0, resolution=0.05, width=2.0)
+    matcher = Matcher()
+    starts = np.random.default_rng(10).uniform(-1, 1, (600, 3)) * (0.2, 0.2, 0.1)
+    for r0 in starts[:100]:
+        matcher.match(grid, grid, r0)
+    before = rss_kib()
+    for r0 in starts[100:]:
+        matcher.match(grid, grid, r0)
+    assert rss_kib() <= before * 1.05

@@ -82,3 +82,11 @@ def test_cell_of_inverts_cell_centres_for_any_yaw():
         rows, cols = np.indices(g.shape)
         r, c = g.cell_of(g.cell_centres(rows, cols))
         assert np.array_equal(r, rows) and np.array_equal(c, cols)
+
+
+def test_maps_too_large_are_refused_before_allocating():
+    from taichi_match._grid import MAX_CELLS
+
+    huge = np.lib.stride_tricks.as_strided(np.zeros(1), shape=(65536, MAX_CELLS // 65536 + 1), strides=(0, 0))
+    with pytest.raises(InvalidMapError, match="too large"):
+        GridMap(huge, 0.05)

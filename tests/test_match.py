@@ -184,3 +184,11 @@ def test_a_minimum_without_overlap_is_reported_as_separated():
         assert res.overlap > 0 or (res.status == Status.SEPARATED and not res.converged)
         statuses.append(res.status)
     assert Status.SEPARATED in statuses
+
+
+def test_maps_without_structure_are_reported_as_giving_no_information():
+    free = GridMap(np.zeros((60, 60)), 0.05)
+    res = match(free, free, (0.1, -0.05, 0.02))
+    assert res.status == Status.NO_INFORMATION and not res.converged
+    assert len(res.degenerate) == 3 and np.all(np.isfinite(res.covariance))
+    assert np.allclose(res.pose, (0.1, -0.05, 0.02))
