@@ -137,7 +137,8 @@ def test_bad_maps_and_options():
     with pytest.raises(TypeError):
         match(a, a, (0, 0, 0), no_such_option=1)
     for bad in (dict(blur=-1.0), dict(prior_weight=np.nan), dict(rotation_scale=0.0),
-                dict(max_iterations=-1), dict(step=0.0), dict(engine="cuda"), dict(max_iterations=2.5)):
+                dict(max_iterations=-1), dict(step=0.0), dict(engine="cuda"), dict(max_iterations=2.5),
+                dict(levels=0), dict(levels=9), dict(refine_iterations=-1), dict(blur_kind="box")):
         with pytest.raises(ValueError):
             match(a, a, (0, 0, 0), **bad)
 
