@@ -12,8 +12,8 @@ import logging
 import numpy as np
 
 from ._bfgs import Status
-from ._errors import (EngineError, InvalidMapError, InvalidPoseError, MapFileError, MapFormatError,
-                      TaichiMatchError)
+from ._errors import (EngineError, InvalidMapError, InvalidOptionError, InvalidPoseError, MapFileError,
+                      MapFormatError, TaichiMatchError)
 from ._grid import GridMap
 from ._matcher import CALIBRATED_COVARIANCE_SCALE, Matcher, MatchOptions, MatchResult, match
 from ._prepared import PreparedMap, make_engine
@@ -21,7 +21,8 @@ from ._se2 import as_poses, compose, inverse, transform_points, wrap_angle
 
 __all__ = [
     "GridMap", "discrepancy", "match", "Matcher", "MatchOptions", "MatchResult", "Status", "CALIBRATED_COVARIANCE_SCALE",
-    "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "EngineError", "MapFileError", "MapFormatError",
+    "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
+    "MapFileError", "MapFormatError",
     "compose", "inverse", "transform_points", "wrap_angle",
 ]
 

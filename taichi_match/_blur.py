@@ -27,6 +27,7 @@ from typing import Literal
 import numpy as np
 from scipy import ndimage
 
+from ._errors import InvalidOptionError
 from ._grid import GridMap
 
 __all__ = ["blur", "BLUR_KINDS"]
@@ -39,9 +40,9 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp"] = "ga
     """Return ``grid`` blurred with ``width`` metres (see the module docstring); unknown stays NaN."""
     width = float(width)
     if not np.isfinite(width) or width < 0.0:
-        raise ValueError(f"blur width must be a finite number of metres >= 0; got {width}")
+        raise InvalidOptionError(f"blur width must be a finite number of metres >= 0; got {width}")
     if kind not in BLUR_KINDS:
-        raise ValueError(f"blur kind must be one of {BLUR_KINDS}; got {kind!r}")
+        raise InvalidOptionError(f"blur kind must be one of {BLUR_KINDS}; got {kind!r}")
     if width == 0.0:
         return grid
     prob = grid.prob

@@ -1,7 +1,7 @@
 """The library's own exceptions: one root, subclasses of the built-ins where natural."""
 
-__all__ = ["TaichiMatchError", "InvalidMapError", "InvalidPoseError", "EngineError", "MapFileError",
-           "MapFormatError"]
+__all__ = ["TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
+           "MapFileError", "MapFormatError"]
 
 
 class TaichiMatchError(Exception):
@@ -14,6 +14,10 @@ class InvalidMapError(TaichiMatchError, ValueError):
 
 class InvalidPoseError(TaichiMatchError, ValueError):
     """A pose or a batch of poses is malformed or not finite."""
+
+
+class InvalidOptionError(TaichiMatchError, ValueError, TypeError):
+    """An option is unknown, of the wrong type or out of range."""
 
 
 class EngineError(TaichiMatchError, RuntimeError):

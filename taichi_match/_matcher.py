@@ -19,7 +19,7 @@ from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior,
                     prior_values)
 from ._covariance import covariance_from_hessian
-from ._errors import InvalidMapError
+from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
 from ._prepared import ENGINES, PreparedMap, make_engine
 from ._se2 import as_pose, wrap_angle
@@ -89,16 +89,16 @@ class MatchOptions:
                 _check_number(name, getattr(self, name), minimum=0.0, strict=True)
         if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, (int, np.integer)) \
                 or self.max_iterations < 0:
-            raise ValueError(f"max_iterations must be an integer >= 0; got {self.max_iterations!r}")
+            raise InvalidOptionError(f"max_iterations must be an integer >= 0; got {self.max_iterations!r}")
         if isinstance(self.levels, bool) or not isinstance(self.levels, (int, np.integer)) or not 1 <= self.levels <= 8:
-            raise ValueError(f"levels must be an integer in 1..8; got {self.levels!r}")
+            raise InvalidOptionError(f"levels must be an integer in 1..8; got {self.levels!r}")
         if isinstance(self.refine_iterations, bool) or not isinstance(self.refine_iterations, (int, np.integer)) \
                 or self.refine_iterations < 0:
-            raise ValueError(f"refine_iterations must be an integer >= 0; got {self.refine_iterations!r}")
+            raise InvalidOptionError(f"refine_iterations must be an integer >= 0; got {self.refine_iterations!r}")
         if self.blur_kind not in BLUR_KINDS:
-            raise ValueError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
+            raise InvalidOptionError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
         if self.engine not in ENGINES:
-            raise ValueError(f"engine must be one of {ENGINES}; got {self.engine!r}")
+            raise InvalidOptionError(f"engine must be one of {ENGINES}; got {self.engine!r}")
 
     def weight(self, known_cells_b):
         """K of eq. (8) for a map B with ``known_cells_b`` known cells."""
@@ -114,11 +114,22 @@ class MatchOptions:
         return np.array([eps, eps, eps_theta])
 
 
+def _with(options, overrides):
+    """``options`` with ``overrides`` applied; unknown names raise InvalidOptionError."""
+    if not overrides:
+        return options
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(MatchOptions)})
+    if unknown:
+        raise InvalidOptionError(f"unknown option(s) {unknown}; the options are the fields of MatchOptions: "
+                                 f"{[f.name for f in dataclasses.fields(MatchOptions)]}")
+    return dataclasses.replace(options, **overrides)
+
+
 def _check_number(name, value, *, minimum, strict=False):
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f"{name} must be a number; got {value!r}")
+        raise InvalidOptionError(f"{name} must be a number; got {value!r}")
     if not np.isfinite(value) or value < minimum or (strict and value == minimum):
-        raise ValueError(f"{name} must be finite and {'>' if strict else '>='} {minimum}; got {value!r}")
+        raise InvalidOptionError(f"{name} must be finite and {'>' if strict else '>='} {minimum}; got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -197,7 +208,7 @@ class Matcher:
 
     def __init__(self, options: Optional[MatchOptions] = None, **overrides):
         options = options if options is not None else MatchOptions()
-        self.options = dataclasses.replace(options, **overrides) if overrides else options
+        self.options = _with(options, overrides)
         self._cache = weakref.WeakKeyDictionary()      # GridMap -> {(blur, kind): PreparedMap}
         self._lock = threading.Lock()
 
@@ -219,7 +230,7 @@ class Matcher:
     def match(self, a: GridMap, b: GridMap, initial_pose, **overrides) -> MatchResult:
         """Find r_A2B near ``initial_pose`` minimising h (eq. 8-9); see ``match``."""
         start = time.perf_counter()
-        opts = dataclasses.replace(self.options, **overrides) if overrides else self.options
+        opts = _with(self.options, overrides)
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
         prep_a = self.prepare(a, opts.blur, opts.blur_kind)

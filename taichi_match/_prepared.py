@@ -9,6 +9,7 @@ import numpy as np
 
 from ._blur import blur
 from ._cost import affine_coefficients
+from ._errors import InvalidOptionError
 from ._grid import GridMap
 from ._kernels import TaichiEngine
 from ._pyramid import coarsen
@@ -73,4 +74,4 @@ def make_engine(name, a: PreparedMap, b: PreparedMap):
     if name == "numpy":
         oracle = NumpyDiscrepancy(a.blurred, b.blurred)
         return lambda poses, with_count=True: oracle(poses)
-    raise ValueError(f"engine must be one of {ENGINES}; got {name!r}")
+    raise InvalidOptionError(f"engine must be one of {ENGINES}; got {name!r}")

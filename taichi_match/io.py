@@ -22,7 +22,7 @@ import zlib
 
 import numpy as np
 
-from ._errors import MapFileError, MapFormatError
+from ._errors import InvalidOptionError, MapFileError, MapFormatError
 from ._grid import GridMap
 
 __all__ = [
@@ -178,7 +178,7 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
     ``raw``: the occupancy percent as the grey level, unknown 255.
     """
     if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}; got {mode!r}")
+        raise InvalidOptionError(f"mode must be one of {MODES}; got {mode!r}")
     base = os.path.splitext(os.path.basename(yaml_path))[0]
     image = image or base + (".png" if mode == "scale" else ".pgm")
     folder = os.path.dirname(os.path.abspath(yaml_path))
@@ -192,7 +192,7 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
         pixels = np.where(unknown, 255, np.rint(100 * q)).astype(np.uint8)
     else:
         if not image.lower().endswith(".png"):
-            raise ValueError("scale mode stores unknown cells as transparency: use a .png image")
+            raise InvalidOptionError("scale mode stores unknown cells as transparency: use a .png image")
         grey = np.rint(255 * (1 - q)).astype(np.uint8)
         pixels = np.dstack([grey, np.where(unknown, 0, 255).astype(np.uint8)])
     write_image(os.path.join(folder, image), pixels)
@@ -321,7 +321,7 @@ def write_image(path, pixels):
         with open(path, "wb") as f:
             if path.lower().endswith(".pgm"):
                 if pixels.ndim != 2:
-                    raise ValueError("a PGM image is grey only")
+                    raise InvalidOptionError("a PGM image is grey only")
                 f.write(b"P5\n%d %d\n255\n" % (pixels.shape[1], pixels.shape[0]))
                 f.write(pixels.tobytes())
             else:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import rasterize, room_scene
-from taichi_match import GridMap, InvalidMapError, InvalidPoseError, Matcher, Status, match
+from taichi_match import GridMap, InvalidMapError, InvalidOptionError, InvalidPoseError, Matcher, Status, match
 from taichi_match.scenes import corridor
 
 
@@ -134,12 +134,12 @@ def test_bad_maps_and_options():
     a = GridMap(np.zeros((5, 5)), 0.1)
     with pytest.raises(InvalidMapError):
         match(np.zeros((5, 5)), a, (0, 0, 0))
-    with pytest.raises(TypeError):
+    with pytest.raises(InvalidOptionError, match="no_such_option"):
         match(a, a, (0, 0, 0), no_such_option=1)
     for bad in (dict(blur=-1.0), dict(prior_weight=np.nan), dict(rotation_scale=0.0),
                 dict(max_iterations=-1), dict(step=0.0), dict(engine="cuda"), dict(max_iterations=2.5),
                 dict(levels=0), dict(levels=9), dict(refine_iterations=-1), dict(blur_kind="box")):
-        with pytest.raises(ValueError):
+        with pytest.raises(InvalidOptionError):
             match(a, a, (0, 0, 0), **bad)
 
 
