@@ -242,7 +242,7 @@ class Matcher:
         for level in reversed(range(opts.levels)):        # coarse to fine; level 0: the given maps
             pa, pb = prep_a.level(level), prep_b.level(level)
             engine = make_engine(opts.engine, pa, pb)
-            steps = opts.steps(pa.grid.resolution, prep_b.radius)
+            steps = opts.steps(pa.resolution, prep_b.radius)
             # e is a sum over B's cells: K follows the number of cells at this level
             weight = full_weight * pb.n_known / max(prep_b.n_known, 1)
             # the optimiser works in z = r * scale, all in metres: theta times B's rms radius, so

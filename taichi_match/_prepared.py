@@ -5,6 +5,8 @@ cells; as B it is a float32 grid plus the list of rows holding known cells and, 
 column range that holds them, so the kernels skip unknown rows and margins. Unknown is -1.
 """
 
+import weakref
+
 import numpy as np
 
 from ._blur import blur
@@ -25,10 +27,14 @@ class PreparedMap:
     """``grid`` blurred (``blur_kind``, ``blur_width`` metres), with engine-ready arrays."""
 
     def __init__(self, grid: GridMap, blur_width: float, blur_kind: str = "gaussian"):
-        self.grid = grid
+        # Only a weak reference to the source map: the matcher caches prepared maps in a
+        # WeakKeyDictionary keyed by that map, and a strong one would keep both alive forever.
+        self._grid = weakref.ref(grid)
+        self.resolution = grid.resolution
         self.blur_width = float(blur_width)
         self.blur_kind = blur_kind
-        self.blurred = blur(grid, blur_width, kind=blur_kind)
+        blurred = blur(grid, blur_width, kind=blur_kind)
+        self.blurred = blurred if blurred is not grid else grid.with_prob(grid.prob)
         values = np.where(np.isnan(self.blurred.prob), _UNKNOWN, self.blurred.prob).astype(np.float32)
         self.padded = np.pad(values, 1, constant_values=_UNKNOWN)          # role A
         self.values = np.ascontiguousarray(values)                         # role B
@@ -45,11 +51,21 @@ class PreparedMap:
                           grid.resolution)
 
         self._coarser = None
+        self._coarser_grid = None
+
+    @property
+    def grid(self) -> GridMap:
+        """The map this was prepared from (alive for as long as its owner keeps it)."""
+        grid = self._grid()
+        if grid is None:
+            raise ReferenceError("the map this PreparedMap was made from no longer exists")
+        return grid
 
     def coarser(self):
         """The next level of the pyramid: the map with cells twice as large, blurred alike (cached)."""
         if self._coarser is None:
-            self._coarser = PreparedMap(coarsen(self.grid), self.blur_width, self.blur_kind)
+            self._coarser_grid = coarsen(self.grid)            # owned here: the level holds it weakly
+            self._coarser = PreparedMap(self._coarser_grid, self.blur_width, self.blur_kind)
         return self._coarser
 
     def level(self, k):
@@ -60,7 +76,7 @@ class PreparedMap:
         return prepared
 
     def __repr__(self):
-        return f"PreparedMap({self.grid!r}, blur {self.blur_kind} {self.blur_width} m)"
+        return f"PreparedMap({self._grid()!r}, blur {self.blur_kind} {self.blur_width} m)"
 
 
 def make_engine(name, a: PreparedMap, b: PreparedMap):

@@ -176,3 +176,18 @@ def test_resident_memory_stays_flat_over_repeated_matches():
     for r0 in starts[100:]:
         matcher.match(grid, grid, r0)
     assert rss_kib() <= before * 1.05
+
+
+def test_the_matcher_cache_lets_maps_go():
+    """A prepared map must not keep its source map alive (the cache is keyed weakly by it)."""
+    import gc
+    import weakref
+
+    matcher = Matcher()
+    grid = GridMap(np.random.default_rng(0).random((40, 40)), 0.05)
+    matcher.match(grid, grid, (0.01, 0.0, 0.0))
+    assert len(matcher._cache) == 1
+    ref = weakref.ref(grid)
+    del grid
+    gc.collect()
+    assert ref() is None and len(matcher._cache) == 0
