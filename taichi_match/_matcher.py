@@ -235,82 +235,41 @@ class Matcher:
         r0[2] = wrap_angle(r0[2])
         prep_a = self.prepare(a, opts.blur, opts.blur_kind)
         prep_b = self.prepare(b, opts.blur, opts.blur_kind)
+        counter = _Counter()
         full_weight = opts.weight(prep_b.n_known)
-        launches = 0
-        evaluations = 0
+        top = opts.levels - 1
         r, status, nit, cost_value = r0, Status.MAX_ITERATIONS, 0, 0.0
-        for level in reversed(range(opts.levels)):        # coarse to fine; level 0: the given maps
-            pa, pb = prep_a.level(level), prep_b.level(level)
-            engine = make_engine(opts.engine, pa, pb)
-            steps = opts.steps(pa.resolution, prep_b.radius)
-            # e is a sum over B's cells: K follows the number of cells at this level
-            weight = full_weight * pb.n_known / max(prep_b.n_known, 1)
-            # the optimiser works in z = r * scale, all in metres: theta times B's rms radius, so
-            # that a unit step moves a typical cell of B by about a metre whichever way it goes
-            scale = np.array([1.0, 1.0, prep_b.radius])
-
-            def evaluate(poses, with_count=True):
-                nonlocal launches, evaluations
-                launches += 1
-                evaluations += len(poses)
-                return engine(poses, with_count)
-
-            def cost(r, with_count=False):
-                """h (eq. 8) and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
-                values, counts = evaluate(gradient_stencil(r, steps), with_count)
-                p_val, p_grad = prior(r, r0, weight, opts.rotation_scale)
-                return values[0] + p_val, gradient_from_stencil(values, steps) + p_grad, counts
-
-            def fun_grad(z):                     # in scaled coordinates z = r * scale
-                h, grad, _ = cost(z / scale)
-                return h, grad / scale, None
-
-            def cost_batch(zs):                  # h at a batch of points, one launch (for the polish)
-                rs = zs / scale
-                e_values, _ = evaluate(rs, with_count=False)
-                return e_values + prior_values(rs, r0, weight, opts.rotation_scale)
-
-            max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * steps[0])
-            h_start, grad_start, counts = cost(r, with_count=True)
-            if counts[0] == 0 and level == opts.levels - 1:
+        for level in range(top, -1, -1):                  # coarse to fine; level 0: the given maps
+            cost = _LevelCost(prep_a.level(level), prep_b.level(level), prep_b, opts, r0, full_weight, counter)
+            eps = cost.steps[0]
+            h_start, grad_start, counts = cost.value_and_gradient(r, with_count=True)
+            z, step = r * cost.scale, 4.0 * eps
+            if level == top and counts[0] == 0:
                 status, cost_value = Status.NO_OVERLAP, h_start
                 break
-            if level > 0 and level < opts.levels - 1:
-                # from a coarser level's answer, within about a coarse cell: the compass search alone
-                z, cost_value, _ = polish(cost_batch, r * scale, h_start, step=4.0 * steps[0],
-                                          xtol=opts.xtol * steps[0], max_step=max_step)
-                r = z / scale
-                continue
-            if level == 0 and opts.levels > 1:
-                # the given maps: a few BFGS steps of at most two cells, then the compass search
-                res = minimize_bfgs(fun_grad, r * scale, max_step=2.0 * steps[0], xtol=opts.xtol * steps[0],
-                                    gtol=opts.gtol * weight,
+            if level == top:                               # BFGS from the initial guess
+                res = minimize_bfgs(cost.fun_grad, z, max_step=cost.max_step, xtol=opts.xtol * eps,
+                                    gtol=opts.gtol * cost.weight, max_iterations=opts.max_iterations,
+                                    first=(h_start, grad_start / cost.scale, None))
+                z, h_start, status, nit = res.z, res.fun, res.status, nit + res.nit
+            elif level == 0:                               # a few BFGS steps of at most two cells
+                res = minimize_bfgs(cost.fun_grad, z, max_step=2.0 * eps, xtol=opts.xtol * eps,
+                                    gtol=opts.gtol * cost.weight,
                                     max_iterations=min(opts.refine_iterations, opts.max_iterations),
-                                    first=(h_start, grad_start / scale, None))
-                z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=steps[0], xtol=opts.xtol * steps[0],
-                                          max_step=max_step)
-                r, nit = z / scale, nit + res.nit
-                break
-            res = minimize_bfgs(fun_grad, r * scale, max_step=max_step, xtol=opts.xtol * steps[0],
-                                gtol=opts.gtol * weight, max_iterations=opts.max_iterations,
-                                first=(h_start, grad_start / scale, None))
-            z, cost_value, _ = polish(cost_batch, res.z, res.fun, step=4.0 * steps[0],
-                                      xtol=opts.xtol * steps[0], max_step=max_step)
-            r, status, nit = z / scale, res.status, nit + res.nit
-        engine = make_engine(opts.engine, prep_a, prep_b)
-        steps = opts.steps(a.resolution, prep_b.radius)
+                                    first=(h_start, grad_start / cost.scale, None))
+                z, h_start, nit, step = res.z, res.fun, nit + res.nit, eps
+            # then the compass search (alone on the levels in between)
+            z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.xtol * eps,
+                                      max_step=cost.max_step)
+            r = z / cost.scale
 
-        def evaluate(poses, with_count=True):
-            nonlocal launches, evaluations
-            launches += 1
-            evaluations += len(poses)
-            return engine(poses, with_count)
-
-        values, counts = evaluate(hessian_stencil(r, steps))
+        # eq. (11)-(12) on the given maps, one launch of 25 poses
+        cost = _LevelCost(prep_a, prep_b, prep_b, opts, r0, full_weight, counter)
+        values, counts = cost.evaluate(hessian_stencil(r, cost.steps))
         e, overlap = values[0], counts[0]
         if overlap == 0 and status.converged:
             status = Status.SEPARATED
-        information = hessian_from_stencil(values, steps)
+        information = hessian_from_stencil(values, cost.steps)
         covariance, degenerate = covariance_from_hessian(information, prep_b.radius,
                                                          scale=opts.covariance_scale)
         if len(degenerate) == 3 and status.converged:
@@ -319,9 +278,58 @@ class Matcher:
         return MatchResult(
             pose=pose, covariance=covariance, information=information, degenerate=degenerate,
             cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
-            initial_pose=r0,
-            iterations=nit, evaluations=evaluations, launches=launches, converged=status.converged,
-            status=status, message=MESSAGES[status], seconds=time.perf_counter() - start, options=opts)
+            initial_pose=r0, iterations=nit, evaluations=counter.poses, launches=counter.launches,
+            converged=status.converged, status=status, message=MESSAGES[status],
+            seconds=time.perf_counter() - start, options=opts)
+
+
+class _Counter:
+    """Kernel launches and poses evaluated during one match."""
+
+    def __init__(self):
+        self.launches = 0
+        self.poses = 0
+
+
+class _LevelCost:
+    """h (eq. 8) on one level of the pyramid, as the optimisers see it.
+
+    Poses r are (x, y, theta); the optimisers work in z = r * scale, all in metres: theta times
+    B's rms radius, so that a unit step moves a typical cell of B by about a metre whichever way
+    it goes. e is a sum over B's cells, so K follows the number of cells at this level.
+    """
+
+    def __init__(self, pa, pb, prep_b, opts, r0, full_weight, counter):
+        self._engine = make_engine(opts.engine, pa, pb)
+        self._counter = counter
+        self._r0 = r0
+        self._rotation_scale = opts.rotation_scale
+        self.steps = opts.steps(pa.resolution, prep_b.radius)
+        self.weight = full_weight * pb.n_known / max(prep_b.n_known, 1)
+        self.scale = np.array([1.0, 1.0, prep_b.radius])
+        self.max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * self.steps[0])
+
+    def evaluate(self, poses, with_count=True):
+        """e and the overlap for a batch of poses: one kernel launch."""
+        self._counter.launches += 1
+        self._counter.poses += len(poses)
+        return self._engine(poses, with_count)
+
+    def value_and_gradient(self, r, with_count=False):
+        """h and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
+        values, counts = self.evaluate(gradient_stencil(r, self.steps), with_count)
+        p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
+        return values[0] + p_val, gradient_from_stencil(values, self.steps) + p_grad, counts
+
+    def fun_grad(self, z):
+        h, grad, _ = self.value_and_gradient(z / self.scale)
+        return h, grad / self.scale, None
+
+    def batch(self, zs):
+        """h at a batch of points z, one launch (for the compass search)."""
+        rs = zs / self.scale
+        e_values, _ = self.evaluate(rs, with_count=False)
+        return e_values + prior_values(rs, self._r0, self.weight, self._rotation_scale)
 
 
 _DEFAULT = {}
