@@ -17,12 +17,12 @@ import argparse
 import datetime
 import os
 import platform
-import subprocess
 import time
 
 import numpy as np
 
 import taichi_match as tm
+from taichi_match.reproduce import git_revision
 from taichi_match._cost import gradient_stencil, hessian_stencil
 from taichi_match._prepared import make_engine
 from taichi_match.scenes import corridor
@@ -35,14 +35,6 @@ def median_time(fn, repeats):
         fn()
         times.append(time.perf_counter() - t0)
     return float(np.median(times))
-
-
-def git_revision():
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                              cwd=os.path.dirname(os.path.abspath(__file__))).stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
 
 
 def main():

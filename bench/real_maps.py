@@ -19,7 +19,6 @@ needed here: ``pip install opencv-python-headless``.
 """
 
 import argparse
-import os
 import time
 from pathlib import Path
 

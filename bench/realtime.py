@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import taichi_match as tm
+from taichi_match.reproduce import git_revision
 from taichi_match._cost import affine_coefficients, gradient_stencil
 from taichi_match._kernels import _LOCK, _import_taichi, ensure_initialized
 from taichi_match.scenes import corridor, noisy_copy
@@ -196,21 +197,13 @@ def memory_figures(matches):
             "growth_pct": 100 * (samples[-1] / samples[0] - 1)}
 
 
-def git_revision():
-    try:
-        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                               cwd=HERE).stdout.strip() or "unknown"
-    except OSError:
-        return "unknown"
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", default=str(HERE / "RESULTS.md"))
     args = parser.parse_args()
     q = args.quick
-    lines = [f"# Real-time figures", "",
+    lines = ["# Real-time figures", "",
              f"`python bench/realtime.py{' --quick' if q else ''}` at revision {git_revision()} on "
              f"{datetime.date.today()}: {platform.machine()}, {os.cpu_count()} cores, Python "
              f"{platform.python_version()}. Targets from the real-time issue in the last column.", ""]

@@ -9,7 +9,6 @@ the numeric Hessian of e. Conventions are stated once in ``taichi_match._grid`` 
 
 import logging
 
-import numpy as np
 
 from ._bfgs import Status
 from ._errors import (EngineError, InvalidMapError, InvalidOptionError, InvalidPoseError, MapFileError,

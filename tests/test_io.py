@@ -1,6 +1,5 @@
 """Map files: map_server YAML + PGM/PNG, OccupancyGrid arrays, .npz; the real maps in ../shared."""
 
-import os
 from pathlib import Path
 
 import numpy as np
