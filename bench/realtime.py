@@ -39,6 +39,7 @@ from taichi_match.scenes import corridor, noisy_copy
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import real_maps  # noqa: E402  (the real-map protocol)
+from bench_match import median_time  # noqa: E402
 
 
 def rss_mb():
@@ -112,13 +113,8 @@ def kernel_figures(repeats=101):
     cells = int((prepared.rows[:, 2] - prepared.rows[:, 1]).sum())
 
     def timed(fn):
-        fn()
-        ts = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - t0)
-        return float(np.median(ts))
+        fn()                                      # warm-up
+        return median_time(fn, repeats)
 
     with _LOCK:
         t_kernel = timed(lambda: kernel(prepared.padded, prepared.values, prepared.rows, affine, out, False))

@@ -62,19 +62,18 @@ class BfgsResult:
     z: np.ndarray
     fun: float
     grad: np.ndarray
-    extra: object
     status: Status
     nit: int
     nfev: int
 
 
 def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4, first=None):
-    """Minimise ``fun_grad(z) -> (f, g, extra)`` from z0; see the module docstring.
+    """Minimise ``fun_grad(z) -> (f, g)`` from z0; see the module docstring.
 
     ``first`` may hold ``fun_grad(z0)`` when the caller has already evaluated it.
     """
     z = np.asarray(z0, dtype=np.float64).copy()
-    f, g, extra = first if first is not None else fun_grad(z)
+    f, g = first if first is not None else fun_grad(z)
     nfev = 1
     hinv = None                                    # None: steepest descent with a capped step
     sd_length = max_step                           # steepest-descent step: last accepted length
@@ -103,7 +102,7 @@ def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4
         if accepted is None:
             status = Status.NO_DESCENT
             break
-        s, z_new, f_new, g_new, extra_new = accepted
+        s, z_new, f_new, g_new = accepted
         y = g_new - g
         sy = s @ y
         if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
@@ -112,19 +111,19 @@ def minimize_bfgs(fun_grad, z0, *, max_step, xtol, gtol, max_iterations, c1=1e-4
             rho = 1.0 / sy
             v = np.eye(len(z)) - rho * np.outer(s, y)
             hinv = v @ hinv @ v.T + rho * np.outer(s, s)
-        z, f, g, extra = z_new, f_new, g_new, extra_new
+        z, f, g = z_new, f_new, g_new
         step = np.linalg.norm(s)
         sd_length = min(max_step, max(2.0 * step, 10.0 * xtol))
         if step < xtol:
             status = Status.STEP
             break
-    return BfgsResult(z=z, fun=f, grad=g, extra=extra, status=status, nit=nit, nfev=nfev)
+    return BfgsResult(z=z, fun=f, grad=g, status=status, nit=nit, nfev=nfev)
 
 
 def _line_search(fun_grad, z, f, g, p, norm_p, xtol, c1):
     """Backtracking Armijo search along p with safeguarded quadratic interpolation.
 
-    Returns ((step, z_new, f_new, g_new, extra), evaluations), or (None, evaluations) when no
+    Returns ((step, z_new, f_new, g_new), evaluations), or (None, evaluations) when no
     step longer than ``xtol`` decreases f enough.
     """
     slope = p @ g
@@ -132,10 +131,10 @@ def _line_search(fun_grad, z, f, g, p, norm_p, xtol, c1):
     n = 0
     while alpha * norm_p >= xtol:
         z_new = z + alpha * p
-        f_new, g_new, extra_new = fun_grad(z_new)
+        f_new, g_new = fun_grad(z_new)
         n += 1
         if f_new <= f + c1 * alpha * slope:
-            return (alpha * p, z_new, f_new, g_new, extra_new), n
+            return (alpha * p, z_new, f_new, g_new), n
         # minimum of the quadratic through f(0), f'(0) and f(alpha), kept in [0.1, 0.5] * alpha
         curvature = f_new - f - slope * alpha
         trial = -slope * alpha * alpha / (2.0 * curvature) if curvature > 0.0 else 0.5 * alpha

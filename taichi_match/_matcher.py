@@ -250,13 +250,13 @@ class Matcher:
             if level == top:                               # BFGS from the initial guess
                 res = minimize_bfgs(cost.fun_grad, z, max_step=cost.max_step, xtol=opts.xtol * eps,
                                     gtol=opts.gtol * cost.weight, max_iterations=opts.max_iterations,
-                                    first=(h_start, grad_start / cost.scale, None))
+                                    first=(h_start, grad_start / cost.scale))
                 z, h_start, status, nit = res.z, res.fun, res.status, nit + res.nit
             elif level == 0:                               # a few BFGS steps of at most two cells
                 res = minimize_bfgs(cost.fun_grad, z, max_step=2.0 * eps, xtol=opts.xtol * eps,
                                     gtol=opts.gtol * cost.weight,
                                     max_iterations=min(opts.refine_iterations, opts.max_iterations),
-                                    first=(h_start, grad_start / cost.scale, None))
+                                    first=(h_start, grad_start / cost.scale))
                 z, h_start, nit, step = res.z, res.fun, nit + res.nit, eps
             # then the compass search (alone on the levels in between)
             z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.xtol * eps,
@@ -323,7 +323,7 @@ class _LevelCost:
 
     def fun_grad(self, z):
         h, grad, _ = self.value_and_gradient(z / self.scale)
-        return h, grad / self.scale, None
+        return h, grad / self.scale
 
     def batch(self, zs):
         """h at a batch of points z, one launch (for the compass search)."""
