@@ -117,7 +117,7 @@ def kernel_figures(repeats=101):
         return median_time(fn, repeats)
 
     with _LOCK:
-        t_kernel = timed(lambda: kernel(prepared.padded, prepared.values, prepared.rows, affine, out, False))
+        t_kernel = timed(lambda: kernel(prepared.padded, prepared.values, prepared.rows, affine, out, 0))
         t_gather = timed(lambda: gather_only(prepared.padded, prepared.rows, affine, gout))
     per = 13 * cells
     return {"kernel_ns": 1e9 * t_kernel / per, "gather_ns": 1e9 * t_gather / per,

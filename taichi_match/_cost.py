@@ -11,7 +11,7 @@ import numpy as np
 from ._grid import GridMap
 
 __all__ = [
-    "affine_coefficients", "prior", "prior_values", "gradient_stencil", "gradient_from_stencil",
+    "affine_coefficients", "AffineMap", "prior", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
     "hessian_stencil", "hessian_from_stencil",
 ]
 
@@ -27,22 +27,36 @@ def affine_coefficients(poses, a: GridMap, b: GridMap, pad=1):
     at their centres (eq. 2), placed in B's frame by B's corner pose, moved into A's frame by the
     pose (eq. 4), and into A's grid by the inverse of A's corner pose and resolution (eq. 3).
     """
-    poses = np.asarray(poses, dtype=np.float64)
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    bx, by, b_yaw = b.corner_pose
-    ax, ay, a_yaw = a.corner_pose
-    ratio = b.resolution / a.resolution
-    cd, sd = np.cos(b_yaw - a_yaw), np.sin(b_yaw - a_yaw)
-    m00 = (c * cd - s * sd) * ratio                 # B's grid axes in A's grid: theta + yaw_B - yaw_A
-    m10 = (s * cd + c * sd) * ratio
-    cx = c * bx - s * by + (poses[:, 0] - ax)       # B's corner in A's frame, then in A's grid (cells)
-    cy = s * bx + c * by + (poses[:, 1] - ay)
-    ca, sa = np.cos(a_yaw) / a.resolution, np.sin(a_yaw) / a.resolution
-    u0 = ca * cx + sa * cy + pad
-    v0 = ca * cy - sa * cx + pad
-    # cell centres: + 1/2 cell along both of B's axes
-    out = np.column_stack([m00, -m10, u0 + 0.5 * (m00 - m10), m10, m00, v0 + 0.5 * (m10 + m00)])
-    return out
+    return AffineMap(a, b, pad)(poses)
+
+
+class AffineMap:
+    """``affine_coefficients`` for one pair of maps, with the pair's constants computed once."""
+
+    def __init__(self, a: GridMap, b: GridMap, pad=1):
+        self._b_corner = b.corner_pose
+        ax, ay, a_yaw = a.corner_pose
+        self._a_corner = np.array([ax, ay])
+        self._ratio = b.resolution / a.resolution
+        self._cd, self._sd = np.cos(b.corner_pose[2] - a_yaw), np.sin(b.corner_pose[2] - a_yaw)
+        self._ca, self._sa = np.cos(a_yaw) / a.resolution, np.sin(a_yaw) / a.resolution
+        self._pad = pad
+
+    def __call__(self, poses):
+        poses = np.asarray(poses, dtype=np.float64)
+        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+        bx, by, _ = self._b_corner
+        m00 = (c * self._cd - s * self._sd) * self._ratio   # B's grid axes in A's grid: theta + yaw_B - yaw_A
+        m10 = (s * self._cd + c * self._sd) * self._ratio
+        cx = c * bx - s * by + (poses[:, 0] - self._a_corner[0])   # B's corner in A's frame, in A's grid
+        cy = s * bx + c * by + (poses[:, 1] - self._a_corner[1])
+        u0 = self._ca * cx + self._sa * cy + self._pad
+        v0 = self._ca * cy - self._sa * cx + self._pad
+        out = np.empty((len(poses), 6))
+        out[:, 0], out[:, 1], out[:, 3], out[:, 4] = m00, -m10, m10, m00
+        out[:, 2] = u0 + 0.5 * (m00 - m10)             # cell centres: + 1/2 cell along both of B's axes
+        out[:, 5] = v0 + 0.5 * (m10 + m00)
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -57,6 +71,17 @@ def prior(pose, initial_pose, weight, rotation_scale):
     if norm == 0.0:
         return 0.0, np.zeros(3)
     return weight * norm, weight * w * d / norm
+
+
+def prior_hessian(pose, initial_pose, weight, rotation_scale, min_norm):
+    """Curvature of K * ||r - r0|| (eq. 7-8) for a Newton model: ``K W / ||r - r0||``, the Hessian
+    of the quadratic that touches the cone at r from above (as in iteratively reweighted least
+    squares). The cone itself is flat along r - r0, and a model with that zero curvature would
+    step past r0 to the edge of its trust region. The norm is taken as at least ``min_norm``."""
+    d = np.asarray(pose, dtype=np.float64) - initial_pose
+    w = np.array([1.0, 1.0, rotation_scale**2])
+    norm = max(float(np.sqrt(np.dot(w * d, d))), min_norm)
+    return weight * np.diag(w) / norm
 
 
 def prior_values(poses, initial_pose, weight, rotation_scale):
@@ -80,7 +105,7 @@ def gradient_stencil(pose, steps):
 
 
 def gradient_from_stencil(values, steps):
-    """Eq. (10) from the 13 values of ``gradient_stencil``."""
+    """Eq. (10) from the 13 values of ``gradient_stencil`` (or the first 13 of a longer batch)."""
     values = np.asarray(values, dtype=np.float64)
     return values[1:13].reshape(3, 4) @ _GRAD_WEIGHTS / steps
 
@@ -102,12 +127,22 @@ def hessian_stencil(pose, steps):
     return np.asarray(pose, dtype=np.float64) + _HESS_STENCIL * steps
 
 
+def _hessian_weights():
+    """(9, 25): the row-major 3x3 Hessian (times steps_i * steps_j) as weights of the 25 values."""
+    w = np.zeros((3, 3, 25))
+    for d in range(3):
+        w[d, d, 1 + 4 * d: 5 + 4 * d] = _DIAG_WEIGHTS
+        w[d, d, 0] = -30.0 / 12.0
+    for p, (d1, d2) in enumerate(_PAIRS):
+        w[d1, d2, 13 + 4 * p: 17 + 4 * p] = w[d2, d1, 13 + 4 * p: 17 + 4 * p] = _CROSS_WEIGHTS
+    return w.reshape(9, 25)
+
+
+_HESS_WEIGHTS = _hessian_weights()
+
+
 def hessian_from_stencil(values, steps):
     """Eq. (12) from the 25 values of ``hessian_stencil``; returns the symmetric 3x3 Hessian."""
     values = np.asarray(values, dtype=np.float64)
-    h = np.empty((3, 3))
-    for d in range(3):
-        h[d, d] = (_DIAG_WEIGHTS @ values[1 + 4 * d: 5 + 4 * d] - 30.0 / 12.0 * values[0]) / steps[d] ** 2
-    for p, (d1, d2) in enumerate(_PAIRS):
-        h[d1, d2] = h[d2, d1] = _CROSS_WEIGHTS @ values[13 + 4 * p: 17 + 4 * p] / (steps[d1] * steps[d2])
-    return h
+    return (_HESS_WEIGHTS @ values).reshape(3, 3) / np.outer(steps, steps)
+

@@ -117,13 +117,33 @@ def _pin_threads(thread_ids):
             return
 
 
+COUNT_MODES = {"none": 0, "first": 1, "all": 2}   # which poses of a batch get an overlap count
+
+
 def _build_kernel(ti):
     f32_2d = ti.types.ndarray(dtype=ti.f32, ndim=2)
+
+    @ti.func
+    def row_sum(a: ti.template(), b: ti.template(), i, lo, hi, u0, v0, du, dv, u_max, v_max, count: ti.template()):
+        acc = ti.f32(0.0)
+        cnt = 0
+        for j in range(lo, hi):
+            # float -> int truncates; anything below 0 or past the end is clamped onto the ring of
+            # unknown cells, so truncation toward zero is as good as floor here
+            iu = ti.min(ti.max(ti.cast(u0 + du * j, ti.i32), 0), u_max)
+            iv = ti.min(ti.max(ti.cast(v0 + dv * j, ti.i32), 0), v_max)
+            pa = a[iv, iu]
+            pb = b[i, j]
+            ok = (pa >= 0.0) & (pb >= 0.0)
+            acc += ti.select(ok, ti.abs(pa - pb), 0.0)
+            if ti.static(count):
+                cnt += ti.select(ok, 1, 0)
+        return acc, cnt
 
     @ti.kernel
     def discrepancy_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
                          affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
-                         out: ti.types.ndarray(dtype=ti.f32, ndim=3), with_count: ti.template()):
+                         out: ti.types.ndarray(dtype=ti.f32, ndim=3), count_mode: ti.template()):
         u_max = a.shape[1] - 1
         v_max = a.shape[0] - 1
         for k, r in ti.ndrange(affine.shape[0], rows.shape[0]):
@@ -134,19 +154,18 @@ def _build_kernel(ti):
             v0 = ti.f32(affine[k, 4] * i + affine[k, 5])
             acc = ti.f32(0.0)
             cnt = 0
-            for j in range(rows[r, 1], rows[r, 2]):
-                # float -> int truncates; anything below 0 or past the end is clamped onto the
-                # ring of unknown cells, so truncation toward zero is as good as floor here
-                iu = ti.min(ti.max(ti.cast(u0 + du * j, ti.i32), 0), u_max)
-                iv = ti.min(ti.max(ti.cast(v0 + dv * j, ti.i32), 0), v_max)
-                pa = a[iv, iu]
-                pb = b[i, j]
-                ok = (pa >= 0.0) & (pb >= 0.0)
-                acc += ti.select(ok, ti.abs(pa - pb), 0.0)
-                if ti.static(with_count):
-                    cnt += ti.select(ok, 1, 0)
+            if ti.static(count_mode == 2):
+                acc, cnt = row_sum(a, b, i, rows[r, 1], rows[r, 2], u0, v0, du, dv, u_max, v_max, True)
+            elif ti.static(count_mode == 1):
+                # the branch is per (pose, row), outside the inner loop: both loops stay branch-free
+                if k == 0:
+                    acc, cnt = row_sum(a, b, i, rows[r, 1], rows[r, 2], u0, v0, du, dv, u_max, v_max, True)
+                else:
+                    acc, cnt = row_sum(a, b, i, rows[r, 1], rows[r, 2], u0, v0, du, dv, u_max, v_max, False)
+            else:
+                acc, cnt = row_sum(a, b, i, rows[r, 1], rows[r, 2], u0, v0, du, dv, u_max, v_max, False)
             out[0, k, r] = acc
-            if ti.static(with_count):
+            if ti.static(count_mode != 0):
                 out[1, k, r] = ti.f32(cnt)          # exact: a row has far fewer than 2**24 cells
 
     return discrepancy_rows
@@ -162,18 +181,27 @@ class TaichiEngine:
         self._b = b
         self._rows = rows
 
-    def __call__(self, affine, with_count=True):
-        """affine: (N, 6) float64. Returns (discrepancy float64 (N,), overlap int64 (N,) or None)."""
+    def __call__(self, affine, count="all"):
+        """affine: (N, 6) float64; count: which poses get an overlap count, "all", "first" or "none".
+
+        Returns (discrepancy float64 (N,), overlap int64 (N,) or None); with "first" only the
+        first overlap is meaningful (the others are 0)."""
+        mode = COUNT_MODES[count]
         n = affine.shape[0]
         n_rows = self._rows.shape[0]
         if n_rows == 0:
-            return np.zeros(n), (np.zeros(n, dtype=np.int64) if with_count else None)
+            return np.zeros(n), (np.zeros(n, dtype=np.int64) if mode else None)
         affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
-        out = np.empty((2 if with_count else 1, n, n_rows), dtype=np.float32)
+        out = np.empty((2 if mode else 1, n, n_rows), dtype=np.float32)
         with _LOCK:
             kernel = ensure_initialized()
-            kernel(self._a, self._b, self._rows, affine, out, bool(with_count))
-        counts = out[1].sum(axis=1, dtype=np.float64).astype(np.int64) if with_count else None
+            kernel(self._a, self._b, self._rows, affine, out, mode)
+        counts = None
+        if mode == 2:
+            counts = out[1].sum(axis=1, dtype=np.float64).astype(np.int64)
+        elif mode == 1:
+            counts = np.zeros(n, dtype=np.int64)
+            counts[0] = int(out[1, 0].sum(dtype=np.float64))
         return out[0].sum(axis=1, dtype=np.float64), counts
 
     def _clear_poses_outside(self, affine):

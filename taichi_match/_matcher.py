@@ -6,6 +6,7 @@ polish -> Hessian (eq. 12) -> covariance (eq. 11).
 """
 
 import dataclasses
+import functools
 import threading
 import time
 import weakref
@@ -17,10 +18,11 @@ import numpy as np
 from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior,
-                    prior_values)
+                    prior_hessian, prior_values)
 from ._covariance import covariance_from_hessian
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
+from ._newton import minimize_newton
 from ._prepared import ENGINES, PreparedMap, make_engine
 from ._se2 import as_pose, wrap_angle
 
@@ -31,6 +33,11 @@ __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARI
 # options, 400 matches (seed 1000): 2.575; `taichi-match reproduce` tests it on other trials (NEES).
 # It holds for the default blur, K, L and steps; treat it as indicative elsewhere.
 CALIBRATED_COVARIANCE_SCALE = 2.58
+
+NEWTON_RADIUS = 4.0      # trust region entering a finer level, in its cells
+NEWTON_XTOL = 0.25       # Newton stops when its step is shorter than this many cells
+NEWTON_XTOL_COARSE = 0.25
+NEWTON_RADIUS0 = 4.0
 
 
 @dataclass(frozen=True)
@@ -75,6 +82,7 @@ class MatchOptions:
     max_iterations: int = 100
     levels: int = 3
     refine_iterations: int = 3
+    optimizer: Literal["newton", "bfgs"] = "newton"
     covariance_scale: float = 1.0
     engine: Literal["taichi", "numpy"] = "taichi"
 
@@ -237,16 +245,62 @@ class Matcher:
         prep_b = self.prepare(b, opts.blur, opts.blur_kind)
         counter = _Counter()
         full_weight = opts.weight(prep_b.n_known)
+        if opts.optimizer == "bfgs":
+            r, status, nit, cost_value, e, overlap, information = self._bfgs_levels(
+                prep_a, prep_b, opts, r0, full_weight, counter)
+        else:
+            r, status, nit, cost_value, e, overlap, information = self._newton_levels(
+                prep_a, prep_b, opts, r0, full_weight, counter)
+        if overlap == 0 and status.converged:
+            status = Status.SEPARATED
+        covariance, degenerate = covariance_from_hessian(information, prep_b.radius,
+                                                         scale=opts.covariance_scale)
+        if len(degenerate) == 3 and status.converged:
+            status = Status.NO_INFORMATION
+        pose = np.array([r[0], r[1], wrap_angle(r[2])])
+        return MatchResult(
+            pose=pose, covariance=covariance, information=information, degenerate=degenerate,
+            cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
+            initial_pose=r0, iterations=nit, evaluations=counter.poses, launches=counter.launches,
+            converged=status.converged, status=status, message=MESSAGES[status],
+            seconds=time.perf_counter() - start, options=opts)
+
+    @staticmethod
+    def _newton_levels(prep_a, prep_b, opts, r0, full_weight, counter):
+        """Trust-region Newton on each level, coarse to fine; one 25-pose launch per iteration."""
+        top = opts.levels - 1
+        r, status, nit = r0, Status.MAX_ITERATIONS, 0
+        for level in range(top, -1, -1):                  # coarse to fine; level 0: the given maps
+            cost = _LevelCost(prep_a.level(level), prep_b.level(level), prep_b, opts, r0, full_weight, counter)
+            eps = cost.steps[0]
+            # the overlap is needed at the start (is there any?) and at the end (the result's)
+            evaluate = functools.partial(cost.value_gradient_hessian, count="first" if level == 0 else "none")
+            first = cost.value_gradient_hessian(r * cost.scale, count="first" if level in (0, top) else "none")
+            if level == top and first[3][1][0] == 0:
+                return r0, Status.NO_OVERLAP, 0, first[0], 0.0, 0, np.zeros((3, 3))
+            radius = cost.max_step if level == top else (NEWTON_RADIUS0 if level == 0 else NEWTON_RADIUS) * eps
+            budget = opts.max_iterations if level == top else min(opts.refine_iterations, opts.max_iterations)
+            res = minimize_newton(evaluate, r * cost.scale, radius=radius, max_radius=cost.max_step,
+                                  xtol=(NEWTON_XTOL if level == 0 else NEWTON_XTOL_COARSE) * eps,
+                                  gtol=opts.gtol * cost.weight, max_launches=budget, first=first)
+            r, nit = res.z / cost.scale, nit + res.nit
+            if level == top:          # the finer levels refine within a fixed budget of launches
+                status = res.status
+        values, counts = res.extra
+        return r, status, nit, res.fun, values[0], counts[0], hessian_from_stencil(values, cost.steps)
+
+    @staticmethod
+    def _bfgs_levels(prep_a, prep_b, opts, r0, full_weight, counter):
+        """The paper's BFGS (eq. 9) on each level, compass polish, then one 25-pose Hessian launch."""
         top = opts.levels - 1
         r, status, nit, cost_value = r0, Status.MAX_ITERATIONS, 0, 0.0
         for level in range(top, -1, -1):                  # coarse to fine; level 0: the given maps
             cost = _LevelCost(prep_a.level(level), prep_b.level(level), prep_b, opts, r0, full_weight, counter)
             eps = cost.steps[0]
-            h_start, grad_start, counts = cost.value_and_gradient(r, with_count=True)
+            h_start, grad_start, counts = cost.value_and_gradient(r, count="first")
             z, step = r * cost.scale, 4.0 * eps
             if level == top and counts[0] == 0:
-                status, cost_value = Status.NO_OVERLAP, h_start
-                break
+                return r0, Status.NO_OVERLAP, 0, h_start, 0.0, 0, np.zeros((3, 3))
             if level == top:                               # BFGS from the initial guess
                 res = minimize_bfgs(cost.fun_grad, z, max_step=cost.max_step, xtol=opts.xtol * eps,
                                     gtol=opts.gtol * cost.weight, max_iterations=opts.max_iterations,
@@ -262,25 +316,9 @@ class Matcher:
             z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.xtol * eps,
                                       max_step=cost.max_step)
             r = z / cost.scale
-
         # eq. (11)-(12) on the given maps, one launch of 25 poses
-        cost = _LevelCost(prep_a, prep_b, prep_b, opts, r0, full_weight, counter)
         values, counts = cost.evaluate(hessian_stencil(r, cost.steps))
-        e, overlap = values[0], counts[0]
-        if overlap == 0 and status.converged:
-            status = Status.SEPARATED
-        information = hessian_from_stencil(values, cost.steps)
-        covariance, degenerate = covariance_from_hessian(information, prep_b.radius,
-                                                         scale=opts.covariance_scale)
-        if len(degenerate) == 3 and status.converged:
-            status = Status.NO_INFORMATION
-        pose = np.array([r[0], r[1], wrap_angle(r[2])])
-        return MatchResult(
-            pose=pose, covariance=covariance, information=information, degenerate=degenerate,
-            cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
-            initial_pose=r0, iterations=nit, evaluations=counter.poses, launches=counter.launches,
-            converged=status.converged, status=status, message=MESSAGES[status],
-            seconds=time.perf_counter() - start, options=opts)
+        return r, status, nit, cost_value, values[0], counts[0], hessian_from_stencil(values, cost.steps)
 
 
 class _Counter:
@@ -309,17 +347,28 @@ class _LevelCost:
         self.scale = np.array([1.0, 1.0, prep_b.radius])
         self.max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * self.steps[0])
 
-    def evaluate(self, poses, with_count=True):
-        """e and the overlap for a batch of poses: one kernel launch."""
+    def evaluate(self, poses, count="first"):
+        """e and the overlap (see ``make_engine`` for ``count``) for a batch of poses: one launch."""
         self._counter.launches += 1
         self._counter.poses += len(poses)
-        return self._engine(poses, with_count)
+        return self._engine(poses, count)
 
-    def value_and_gradient(self, r, with_count=False):
+    def value_and_gradient(self, r, count="none"):
         """h and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
-        values, counts = self.evaluate(gradient_stencil(r, self.steps), with_count)
+        values, counts = self.evaluate(gradient_stencil(r, self.steps), count)
         p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
         return values[0] + p_val, gradient_from_stencil(values, self.steps) + p_grad, counts
+
+    def value_gradient_hessian(self, z, count="none"):
+        """h, its gradient and Hessian in z (eq. 10, 12 plus the prior's), from one launch of 25
+        poses; extra: (e at the stencil's poses, overlap counts or None)."""
+        r = z / self.scale
+        values, counts = self.evaluate(hessian_stencil(r, self.steps), count)
+        grad, hess = gradient_from_stencil(values, self.steps), hessian_from_stencil(values, self.steps)
+        p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
+        grad = grad + p_grad
+        hess = hess + prior_hessian(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
+        return values[0] + p_val, grad / self.scale, hess / np.outer(self.scale, self.scale), (values, counts)
 
     def fun_grad(self, z):
         h, grad, _ = self.value_and_gradient(z / self.scale)
@@ -328,7 +377,7 @@ class _LevelCost:
     def batch(self, zs):
         """h at a batch of points z, one launch (for the compass search)."""
         rs = zs / self.scale
-        e_values, _ = self.evaluate(rs, with_count=False)
+        e_values, _ = self.evaluate(rs, count="none")
         return e_values + prior_values(rs, self._r0, self.weight, self._rotation_scale)
 
 

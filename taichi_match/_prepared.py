@@ -10,7 +10,7 @@ import weakref
 import numpy as np
 
 from ._blur import blur
-from ._cost import affine_coefficients
+from ._cost import AffineMap
 from ._errors import InvalidOptionError
 from ._grid import GridMap
 from ._kernels import TaichiEngine
@@ -80,14 +80,17 @@ class PreparedMap:
 
 
 def make_engine(name, a: PreparedMap, b: PreparedMap):
-    """A callable ``(poses (N, 3), with_count=True) -> (discrepancy (N,), overlap (N,) or None)``.
+    """A callable ``(poses (N, 3), count="all") -> (discrepancy (N,), overlap (N,) or None)``.
 
-    ``with_count=False`` lets an engine skip counting the cells compared (the overlap).
+    ``count`` says whose overlap (known cells of B on known cells of A) is needed: "all" poses,
+    only the "first" (the others may be returned as 0), or "none" (None may be returned); an
+    engine may skip the counting that is not asked for.
     """
     if name == "taichi":
         kernel = TaichiEngine(a.padded, b.values, b.rows)
-        return lambda poses, with_count=True: kernel(affine_coefficients(poses, a.blurred, b.blurred), with_count)
+        affine = AffineMap(a.blurred, b.blurred)
+        return lambda poses, count="all": kernel(affine(poses), count)
     if name == "numpy":
         oracle = NumpyDiscrepancy(a.blurred, b.blurred)
-        return lambda poses, with_count=True: oracle(poses)
+        return lambda poses, count="all": oracle(poses)
     raise InvalidOptionError(f"engine must be one of {ENGINES}; got {name!r}")

@@ -91,7 +91,7 @@ def surface(a: PreparedMap, b: PreparedMap, xs, ys, *, theta=0.0, prior=None, en
     out = np.empty((len(ys), len(xs)))
     for i, y in enumerate(ys):
         poses = np.column_stack([xs, np.full_like(xs, y), np.full_like(xs, theta)])
-        out[i] = evaluate(poses, False)[0]
+        out[i] = evaluate(poses, "none")[0]
         if prior is not None:
             out[i] += prior_values(poses, *prior)
     return out

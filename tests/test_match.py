@@ -106,7 +106,7 @@ def test_no_overlap_is_reported_not_raised():
 def test_iteration_budget_is_reported_not_raised(corridor_map, matcher, levels):
     res = matcher.match(corridor_map, corridor_map, (0.0, 0.8, 0.3), max_iterations=1, levels=levels)
     assert res.status == Status.MAX_ITERATIONS and not res.converged
-    assert res.iterations == (1 if levels == 1 else 2)          # one per BFGS run: coarsest and given maps
+    assert res.iterations <= levels                              # at most one step per level
     assert np.all(np.isfinite(res.pose))
 
 
