@@ -9,6 +9,7 @@ evaluates them.
 import numpy as np
 
 from ._grid import GridMap
+from ._kernels import PAD
 
 __all__ = [
     "affine_coefficients", "AffineMap", "prior", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
@@ -19,7 +20,7 @@ __all__ = [
 # Eq. (5): f(c_B) = lambda_A^-1(T(r_AB) lambda_B(c_B)), as affine coefficients per pose.
 
 
-def affine_coefficients(poses, a: GridMap, b: GridMap, pad=1):
+def affine_coefficients(poses, a: GridMap, b: GridMap, pad=PAD):
     """(N, 6) coefficients mapping B's cell (i, j) to A's (padded) cell coordinates.
 
     ``u = c0*j + c1*i + c2`` is A's column and ``v = c3*j + c4*i + c5`` A's row, both offset by
@@ -33,7 +34,7 @@ def affine_coefficients(poses, a: GridMap, b: GridMap, pad=1):
 class AffineMap:
     """``affine_coefficients`` for one pair of maps, with the pair's constants computed once."""
 
-    def __init__(self, a: GridMap, b: GridMap, pad=1):
+    def __init__(self, a: GridMap, b: GridMap, pad=PAD):
         self._b_corner = b.corner_pose
         ax, ay, a_yaw = a.corner_pose
         self._a_corner = np.array([ax, ay])

@@ -1,9 +1,14 @@
 """Taichi kernels (CPU backend) evaluating eq. (6) for a batch of poses in one parallel launch.
 
+Two kernels: ``discrepancy_rows`` for any batch of poses, and ``hessian_stencil_rows`` for the 25
+poses of the Hessian stencil (eq. 10-12) when its x and y steps are whole cells of A along A's
+grid axes. Those poses then differ, per theta offset, only by whole-cell shifts of the lookup in
+A, so 5 index computations serve 25 poses and B's cell is read once for all of them.
+
 The kernels know nothing but arrays:
 
-- ``a``: map A padded with one ring of unknown cells, float32, unknown = -1. Any lookup outside A
-  is clamped onto that ring, so the inner loop needs no bounds branch.
+- ``a``: map A padded with a ring of ``PAD`` unknown cells, float32, unknown = -1. Lookups are
+  clamped into the padded grid, so the inner loops need no bounds branch.
 - ``b``: map B, float32, unknown = -1; ``rows``: (R, 3) int32, for each row of B holding known
   cells its index i and the column range [lo, hi) that holds them.
 - ``affine``: (N, 6) float64, per pose the map from B's cell indices to A's padded cell
@@ -26,13 +31,18 @@ import io
 import os
 import sys
 import threading
+import typing
 import warnings
 
 import numpy as np
 
 from ._errors import EngineError
 
-__all__ = ["TaichiEngine", "ensure_initialized"]
+__all__ = ["TaichiEngine", "ensure_initialized", "Kernels", "PAD"]
+
+# Width of the ring of unknown cells around A: lookups are clamped two cells inside the padded
+# grid and then shifted by up to two cells, so any lookup that leaves A must land on the ring.
+PAD = 5
 
 _LOCK = threading.RLock()
 _STATE = {"ti": None, "kernel": None, "forked": False}
@@ -65,7 +75,7 @@ def _import_taichi():
 
 
 def ensure_initialized():
-    """Initialise Taichi on the CPU once (or adopt the host's runtime) and build the kernel."""
+    """Initialise Taichi on the CPU once (or adopt the host's runtime) and build the kernels."""
     with _LOCK:
         if _STATE["forked"]:
             raise EngineError(
@@ -168,7 +178,74 @@ def _build_kernel(ti):
             if ti.static(count_mode != 0):
                 out[1, k, r] = ti.f32(cnt)          # exact: a row has far fewer than 2**24 cells
 
-    return discrepancy_rows
+    # The 25 poses of the Hessian stencil (``_cost.hessian_stencil``, in its order) by theta offset:
+    # poses that differ only in x and y by whole cells of A (A's grid axis-aligned with its frame,
+    # steps of one cell) look up the same cell of A shifted by whole cells, so they share one
+    # index computation. Per theta offset (-2..2 steps): (pose number, cell shift (du, dv)).
+    stencil_groups = (
+        ((9, (0, 0)),),
+        ((10, (0, 0)), (17, (-1, 0)), (19, (1, 0)), (21, (0, -1)), (23, (0, 1))),
+        ((0, (0, 0)), (1, (-2, 0)), (2, (-1, 0)), (3, (1, 0)), (4, (2, 0)), (5, (0, -2)), (6, (0, -1)),
+         (7, (0, 1)), (8, (0, 2)), (13, (-1, -1)), (14, (-1, 1)), (15, (1, -1)), (16, (1, 1))),
+        ((11, (0, 0)), (18, (-1, 0)), (20, (1, 0)), (22, (0, -1)), (24, (0, 1))),
+        ((12, (0, 0)),),
+    )
+
+    @ti.func
+    def group_sums(a: ti.template(), b: ti.template(), out: ti.template(), r, i, lo, hi, u0, v0, du, dv,
+                   u_max, v_max, group: ti.template(), count: ti.template()):
+        acc = ti.Vector([0.0] * ti.static(len(group)), dt=ti.f32)
+        cnt = 0
+        for j in range(lo, hi):
+            # clamped two cells inside the edge, so the shifted lookups stay in A; with a ring of
+            # PAD >= 5 unknown cells every lookup that left A still lands on an unknown cell
+            iu = ti.min(ti.max(ti.cast(u0 + du * j, ti.i32), 2), u_max - 2)
+            iv = ti.min(ti.max(ti.cast(v0 + dv * j, ti.i32), 2), v_max - 2)
+            pb = b[i, j]
+            for m in ti.static(range(len(group))):
+                pa = a[iv + group[m][1][1], iu + group[m][1][0]]
+                ok = (pa >= 0.0) & (pb >= 0.0)
+                acc[m] += ti.select(ok, ti.abs(pa - pb), 0.0)
+                if ti.static(count and m == 0 and group[0][0] == 0):
+                    cnt += ti.select(ok, 1, 0)
+        for m in ti.static(range(len(group))):
+            out[0, group[m][0], r] = acc[m]
+        if ti.static(count and group[0][0] == 0):
+            out[1, 0, r] = ti.f32(cnt)
+
+    @ti.kernel
+    def hessian_stencil_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                             affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                             out: ti.types.ndarray(dtype=ti.f32, ndim=3), count_mode: ti.template()):
+        # affine: (5, 6), the poses (x, y, theta + k * eps_theta), k = -2..2
+        u_max = a.shape[1] - 1
+        v_max = a.shape[0] - 1
+        for r, t in ti.ndrange(rows.shape[0], 5):     # rows outer: a block of work items mixes all t
+            i = rows[r, 0]
+            du = ti.f32(affine[t, 0])
+            dv = ti.f32(affine[t, 3])
+            u0 = ti.f32(affine[t, 1] * i + affine[t, 2])
+            v0 = ti.f32(affine[t, 4] * i + affine[t, 5])
+            lo, hi = rows[r, 1], rows[r, 2]
+            # one branch per (theta offset, row), outside the inner loops
+            if t == 2:
+                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[2],
+                           count_mode != 0)
+            elif t == 1:
+                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[1], False)
+            elif t == 3:
+                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[3], False)
+            elif t == 0:
+                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[0], False)
+            else:
+                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[4], False)
+
+    return Kernels(discrepancy_rows, hessian_stencil_rows)
+
+
+class Kernels(typing.NamedTuple):
+    poses: object          # discrepancy_rows: any batch of poses
+    stencil: object        # hessian_stencil_rows: the 25 poses of the Hessian stencil
 
 
 class TaichiEngine:
@@ -180,6 +257,23 @@ class TaichiEngine:
         self._a = a_padded
         self._b = b
         self._rows = rows
+
+    def hessian_stencil(self, affine, count="first"):
+        """The 25 values of ``_cost.hessian_stencil`` from the affine maps (5, 6) of its theta
+        offsets -2..2 (the caller checks that its x, y steps are whole cells of A along A's axes).
+
+        count: "first" (the centre's overlap) or "none". Returns (e (25,), overlap (25,) or None)."""
+        mode = COUNT_MODES[count]
+        if mode == 2:
+            raise ValueError("the stencil kernel counts the overlap of the centre only")
+        n_rows = self._rows.shape[0]
+        if n_rows == 0:
+            return np.zeros(25), (np.zeros(25, dtype=np.int64) if mode else None)
+        affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
+        out = np.zeros((2 if mode else 1, 25, n_rows), dtype=np.float32)
+        with _LOCK:
+            ensure_initialized().stencil(self._a, self._b, self._rows, affine, out, mode)
+        return self._totals(out, mode)
 
     def __call__(self, affine, count="all"):
         """affine: (N, 6) float64; count: which poses get an overlap count, "all", "first" or "none".
@@ -194,13 +288,17 @@ class TaichiEngine:
         affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
         out = np.empty((2 if mode else 1, n, n_rows), dtype=np.float32)
         with _LOCK:
-            kernel = ensure_initialized()
-            kernel(self._a, self._b, self._rows, affine, out, mode)
+            ensure_initialized().poses(self._a, self._b, self._rows, affine, out, mode)
+        return self._totals(out, mode)
+
+    @staticmethod
+    def _totals(out, mode):
+        """Rows added in float64: (e (N,), overlap (N,) int64 or None)."""
         counts = None
         if mode == 2:
             counts = out[1].sum(axis=1, dtype=np.float64).astype(np.int64)
         elif mode == 1:
-            counts = np.zeros(n, dtype=np.int64)
+            counts = np.zeros(out.shape[1], dtype=np.int64)
             counts[0] = int(out[1, 0].sum(dtype=np.float64))
         return out[0].sum(axis=1, dtype=np.float64), counts
 

@@ -363,7 +363,9 @@ class _LevelCost:
         """h, its gradient and Hessian in z (eq. 10, 12 plus the prior's), from one launch of 25
         poses; extra: (e at the stencil's poses, overlap counts or None)."""
         r = z / self.scale
-        values, counts = self.evaluate(hessian_stencil(r, self.steps), count)
+        self._counter.launches += 1
+        self._counter.poses += 25
+        values, counts = self._engine.hessian_stencil(r, self.steps, count)
         grad, hess = gradient_from_stencil(values, self.steps), hessian_from_stencil(values, self.steps)
         p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
         grad = grad + p_grad
