@@ -41,7 +41,7 @@ class PreparedMap:
         blurred = blur(grid, blur_width, kind=blur_kind)
         self.blurred = blurred if blurred is not grid else grid.with_prob(grid.prob)
         values = np.where(np.isnan(self.blurred.prob), _UNKNOWN, self.blurred.prob).astype(np.float32)
-        self.padded = np.pad(values, PAD, constant_values=_UNKNOWN)        # role A
+        self.padded = np.ascontiguousarray(np.pad(values, PAD, constant_values=_UNKNOWN))   # role A
         self.values = np.ascontiguousarray(values)                         # role B
         known = grid.known
         rows = np.flatnonzero(known.any(axis=1))
