@@ -34,10 +34,12 @@ __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARI
 # It holds for the default blur, K, L and steps; treat it as indicative elsewhere.
 CALIBRATED_COVARIANCE_SCALE = 2.58
 
-NEWTON_RADIUS = 4.0      # trust region entering a finer level, in its cells
-NEWTON_XTOL = 0.25       # Newton stops when its step is shorter than this many cells
-NEWTON_XTOL_COARSE = 0.25
-NEWTON_RADIUS0 = 4.0
+# Trust region of the Newton driver on entering a finer level, in that level's cells: the
+# coarser level left the pose within a few of its own cells (measured in bench/TUNING.md).
+ENTRY_RADIUS_CELLS = 4.0          # middle levels
+ENTRY_RADIUS_CELLS_FINEST = 1.0   # the given maps
+XTOL_DEFAULT = {"newton": 0.25, "bfgs": 0.05}
+OPTIMIZERS = tuple(XTOL_DEFAULT)
 
 
 @dataclass(frozen=True)
@@ -56,15 +58,23 @@ class MatchOptions:
     step : finite-difference step eps for x and y (eq. 10-12), metres; None = A's resolution.
     rotation_step : eps for theta, radians; None = step / R, where R is the rms distance of B's
         known cells from B's frame origin (a rotation by eps then moves a typical cell by eps_xy).
-    max_step : longest BFGS step in scaled units (metres), None = max(blur / 2, 4 * step).
-    xtol : the optimiser stops when a step is shorter than xtol * step.
+    max_step : longest step (BFGS) or largest trust region (Newton) in scaled units (metres),
+        None = max(blur / 2, 4 * step).
+    xtol : the optimiser stops when a step (BFGS: taken; Newton: proposed by its model) is shorter
+        than xtol * step; None = 0.25 for Newton, 0.05 for BFGS.
     gtol : ... or when the gradient norm of h is below gtol * K.
-    max_iterations : BFGS iteration budget (per pyramid level).
-    levels : pyramid levels for coarse-to-fine matching: 1 runs BFGS on the maps as given; n > 1
-        runs BFGS on a copy with cells 2**(n-1) times larger, the compass search on the levels
-        between, and on the given maps at most ``refine_iterations`` BFGS steps of up to two cells
-        before the compass search. The covariance is always taken on the given maps.
-    refine_iterations : BFGS iterations on the given maps after a coarser level (levels > 1).
+    max_iterations : budget on the coarsest level: BFGS iterations, or Newton launches after the
+        first.
+    levels : pyramid levels for coarse-to-fine matching: 1 optimises on the maps as given; n > 1
+        starts on a copy with cells 2**(n-1) times larger and refines on each finer level, the
+        last being the given maps. The covariance is always taken on the given maps.
+    refine_iterations : budget on each finer level (levels > 1): Newton launches after the first
+        (from a trust region of 4 cells, 1 on the given maps); for BFGS, iterations on the given
+        maps (of at most two cells), the levels between getting only the compass search.
+    optimizer : "newton" (default): trust-region Newton on the stencil's own Hessian, one launch
+        of the 25 poses of eq. (10)-(12) per iteration, whose last launch also gives the
+        covariance; "bfgs": the paper's BFGS with the 13-pose gradient stencil (eq. 9-10),
+        finished by a compass search, then one launch for the Hessian.
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
     """
@@ -77,7 +87,7 @@ class MatchOptions:
     step: Optional[float] = None
     rotation_step: Optional[float] = None
     max_step: Optional[float] = None
-    xtol: float = 0.05
+    xtol: Optional[float] = None
     gtol: float = 1e-3
     max_iterations: int = 100
     levels: int = 3
@@ -87,8 +97,10 @@ class MatchOptions:
     engine: Literal["taichi", "numpy"] = "taichi"
 
     def __post_init__(self):
-        for name in ("blur", "prior_weight_per_cell", "xtol", "gtol", "covariance_scale"):
+        for name in ("blur", "prior_weight_per_cell", "gtol", "covariance_scale"):
             _check_number(name, getattr(self, name), minimum=0.0)
+        if self.xtol is not None:
+            _check_number("xtol", self.xtol, minimum=0.0)
         if self.prior_weight is not None:
             _check_number("prior_weight", self.prior_weight, minimum=0.0)
         _check_number("rotation_scale", self.rotation_scale, minimum=0.0, strict=True)
@@ -105,8 +117,15 @@ class MatchOptions:
             raise InvalidOptionError(f"refine_iterations must be an integer >= 0; got {self.refine_iterations!r}")
         if self.blur_kind not in BLUR_KINDS:
             raise InvalidOptionError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
+        if self.optimizer not in OPTIMIZERS:
+            raise InvalidOptionError(f"optimizer must be one of {OPTIMIZERS}; got {self.optimizer!r}")
         if self.engine not in ENGINES:
             raise InvalidOptionError(f"engine must be one of {ENGINES}; got {self.engine!r}")
+
+    @property
+    def step_tolerance(self):
+        """xtol, or its default for the optimizer."""
+        return self.xtol if self.xtol is not None else XTOL_DEFAULT[self.optimizer]
 
     def weight(self, known_cells_b):
         """K of eq. (8) for a map B with ``known_cells_b`` known cells."""
@@ -278,11 +297,14 @@ class Matcher:
             first = cost.value_gradient_hessian(r * cost.scale, count="first" if level in (0, top) else "none")
             if level == top and first[3][1][0] == 0:
                 return r0, Status.NO_OVERLAP, 0, first[0], 0.0, 0, np.zeros((3, 3))
-            radius = cost.max_step if level == top else (NEWTON_RADIUS0 if level == 0 else NEWTON_RADIUS) * eps
-            budget = opts.max_iterations if level == top else min(opts.refine_iterations, opts.max_iterations)
+            if level == top:
+                radius, budget = cost.max_step, opts.max_iterations
+            else:
+                radius = (ENTRY_RADIUS_CELLS_FINEST if level == 0 else ENTRY_RADIUS_CELLS) * eps
+                budget = min(opts.refine_iterations, opts.max_iterations)
             res = minimize_newton(evaluate, r * cost.scale, radius=radius, max_radius=cost.max_step,
-                                  xtol=(NEWTON_XTOL if level == 0 else NEWTON_XTOL_COARSE) * eps,
-                                  gtol=opts.gtol * cost.weight, max_launches=budget, first=first)
+                                  xtol=opts.step_tolerance * eps, gtol=opts.gtol * cost.weight,
+                                  max_launches=budget, first=first)
             r, nit = res.z / cost.scale, nit + res.nit
             if level == top:          # the finer levels refine within a fixed budget of launches
                 status = res.status
@@ -302,18 +324,18 @@ class Matcher:
             if level == top and counts[0] == 0:
                 return r0, Status.NO_OVERLAP, 0, h_start, 0.0, 0, np.zeros((3, 3))
             if level == top:                               # BFGS from the initial guess
-                res = minimize_bfgs(cost.fun_grad, z, max_step=cost.max_step, xtol=opts.xtol * eps,
+                res = minimize_bfgs(cost.fun_grad, z, max_step=cost.max_step, xtol=opts.step_tolerance * eps,
                                     gtol=opts.gtol * cost.weight, max_iterations=opts.max_iterations,
                                     first=(h_start, grad_start / cost.scale))
                 z, h_start, status, nit = res.z, res.fun, res.status, nit + res.nit
             elif level == 0:                               # a few BFGS steps of at most two cells
-                res = minimize_bfgs(cost.fun_grad, z, max_step=2.0 * eps, xtol=opts.xtol * eps,
+                res = minimize_bfgs(cost.fun_grad, z, max_step=2.0 * eps, xtol=opts.step_tolerance * eps,
                                     gtol=opts.gtol * cost.weight,
                                     max_iterations=min(opts.refine_iterations, opts.max_iterations),
                                     first=(h_start, grad_start / cost.scale))
                 z, h_start, nit, step = res.z, res.fun, nit + res.nit, eps
             # then the compass search (alone on the levels in between)
-            z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.xtol * eps,
+            z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.step_tolerance * eps,
                                       max_step=cost.max_step)
             r = z / cost.scale
         # eq. (11)-(12) on the given maps, one launch of 25 poses

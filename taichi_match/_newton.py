@@ -23,8 +23,6 @@ import numpy as np
 
 from ._bfgs import Status
 
-GROW = 2.0
-
 __all__ = ["NewtonResult", "minimize_newton", "trust_region_step"]
 
 
@@ -72,12 +70,14 @@ def trust_region_step(g, hessian, radius, floor_rtol=1e-6):
 def minimize_newton(evaluate, z0, *, radius, max_radius, xtol, gtol, max_launches, first=None):
     """Minimise from z0 with ``evaluate(z) -> (f, g, B, extra)`` (one launch each).
 
-    ``radius`` is the initial trust region, ``max_radius`` its cap, both in metres (scaled units).
-    ``first`` may hold ``evaluate(z0)`` when the caller has it.
+    ``radius`` is the initial trust region, ``max_radius`` its cap, both in metres (scaled units);
+    ``max_launches`` bounds the evaluations after the one at z0, which ``first`` may hold when the
+    caller has it. ``launches`` in the result counts the evaluations made here.
     """
     z = np.asarray(z0, dtype=np.float64).copy()
     f, g, hess, extra = first if first is not None else evaluate(z)
     launches = 0 if first is not None else 1
+    trials = 0
     nit = 0
     status = Status.MAX_ITERATIONS
     while True:
@@ -89,17 +89,18 @@ def minimize_newton(evaluate, z0, *, radius, max_radius, xtol, gtol, max_launche
         if step < xtol:
             status = Status.STEP if radius >= xtol else Status.NO_DESCENT
             break
-        if launches >= max_launches:
+        if trials >= max_launches:
             break
         trial = evaluate(z + p)
         launches += 1
+        trials += 1
         actual = f - trial[0]
         ratio = actual / predicted if predicted > 0.0 else (1.0 if actual > 0.0 else -1.0)
         if actual > 0.0:
             z, (f, g, hess, extra) = z + p, trial
             nit += 1
-            if ratio > 0.75 and step > 0.9 * radius:
-                radius = min(GROW * radius, max_radius)
+            if ratio > 0.75 and step > 0.9 * radius:       # the model holds: trust it further
+                radius = min(4.0 * radius, max_radius)
             elif ratio < 0.25:
                 radius = 0.5 * step
         else:

@@ -138,7 +138,8 @@ def test_bad_maps_and_options():
         match(a, a, (0, 0, 0), no_such_option=1)
     for bad in (dict(blur=-1.0), dict(prior_weight=np.nan), dict(rotation_scale=0.0),
                 dict(max_iterations=-1), dict(step=0.0), dict(engine="cuda"), dict(max_iterations=2.5),
-                dict(levels=0), dict(levels=9), dict(refine_iterations=-1), dict(blur_kind="box")):
+                dict(levels=0), dict(levels=9), dict(refine_iterations=-1), dict(blur_kind="box"),
+                dict(optimizer="lbfgs"), dict(xtol=-1.0)):
         with pytest.raises(InvalidOptionError):
             match(a, a, (0, 0, 0), **bad)
 
@@ -169,18 +170,19 @@ def test_coarse_to_fine_levels_reach_the_same_answer(corridor_map):
     expected = np.nanmean(block) if np.any(~np.isnan(block)) else np.nan
     assert np.allclose(g.prob[59, 5], expected, equal_nan=True)
     rng = np.random.default_rng(8)
-    matcher = Matcher(levels=3)
-    for _ in range(5):
-        r0 = rng.uniform(-1, 1, 3) * (1.5, 1.5, 0.38)
-        res = matcher.match(corridor_map, corridor_map, r0)
-        assert res.converged and abs(res.pose[1]) < 0.025 and abs(res.pose[2]) < 0.045
+    for options in (dict(levels=3), dict(levels=1), dict(levels=3, optimizer="bfgs"), dict(levels=1, optimizer="bfgs")):
+        matcher = Matcher(**options)
+        for _ in range(4):
+            r0 = rng.uniform(-1, 1, 3) * (1.5, 1.5, 0.38)
+            res = matcher.match(corridor_map, corridor_map, r0)
+            assert res.converged and abs(res.pose[1]) < 0.025 and abs(res.pose[2]) < 0.045, (options, r0, res)
 
 
 def test_a_minimum_without_overlap_is_reported_as_separated():
     rng = np.random.default_rng(21)
     strip = GridMap(rng.random((1, 500)), 0.05)                 # one row: any shift in y separates
     statuses = []
-    for r0 in ((0.0, 0.0, 0.0), (0.05, 0.01, 0.0), (-0.1, -0.01, 0.0)):
+    for r0 in ((0.0, 0.0, 0.0), (0.05, 0.01, 0.0), (-0.1, -0.01, 0.0), (0.0, -0.03, 0.0), (0.1, 0.03, 0.01)):
         res = match(strip, strip, r0)
         assert res.overlap > 0 or (res.status == Status.SEPARATED and not res.converged)
         statuses.append(res.status)
