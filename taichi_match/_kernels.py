@@ -249,6 +249,7 @@ class Kernels(typing.NamedTuple):
 
 
 _FAST = {}       # (kernel, count mode) -> (compiled kernel, compiled data), or None: no fast path
+DIRECT_LAUNCH = True     # False: always Taichi's own call (for benchmarks)
 
 
 def _launch(kernel, arrays, mode):
@@ -261,7 +262,7 @@ def _launch(kernel, arrays, mode):
     which is what Taichi 1.7's ``Kernel.launch_kernel`` does for numpy arrays. Should Taichi's
     internals differ from 1.7's, the ordinary call is used.
     """
-    fast = _FAST.get((kernel, mode), False)
+    fast = _FAST.get((kernel, mode), False) if DIRECT_LAUNCH else None
     if fast and all(array.flags.c_contiguous for array in arrays):
         t_kernel, compiled = fast
         ctx = t_kernel.make_launch_context()

@@ -304,7 +304,7 @@ class Matcher:
                 budget = min(opts.refine_iterations, opts.max_iterations)
             res = minimize_newton(evaluate, r * cost.scale, radius=radius, max_radius=cost.max_step,
                                   xtol=opts.step_tolerance * eps, gtol=opts.gtol * cost.weight,
-                                  max_launches=budget, first=first)
+                                  max_launches=budget, first=first, gradient_fallback=level == top)
             r, nit = res.z / cost.scale, nit + res.nit
             if level == top:          # the finer levels refine within a fixed budget of launches
                 status = res.status

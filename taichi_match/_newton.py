@@ -5,9 +5,13 @@ value, the gradient and the Hessian at once, so the model needs no history and t
 is also the covariance's (eq. 11). In scaled coordinates z (every component in metres), with
 f, g, B at the centre, the step p minimises the model ``g.p + p.B.p / 2`` within ``|p| <= radius``
 (Levenberg-Marquardt: ``(B + mu I) p = -g``, mu >= 0 the smallest that keeps p in the region),
-where B is the Hessian with its eigenvalues replaced by their absolute values (floored), since
-the stencil Hessian of a piecewise-smooth cost can be indefinite. The trial point's launch
-is the next iteration's: an accepted step moves the centre, a rejected one shrinks the region.
+where B is the stencil's Hessian with its eigenvalues replaced by their absolute values (floored):
+far from the answer, or at a kink, the stencil Hessian of this piecewise-smooth cost is often
+indefinite. The trial point's launch is the next iteration's: an accepted step moves the centre,
+a rejected one shrinks the region. With ``gradient_fallback`` (the coarsest level), a rejected
+step is followed by one along -g as long as the region: the stencil gradient is smoothed over
++-2 steps, and along it a long step often descends where the model's shorter one met a bump of
+the noisy small-scale surface (measured: noisy-corridor failures 3 / 500 -> 0 / 500).
 
 Stops, with the statuses of ``_bfgs``:
 
@@ -67,7 +71,8 @@ def trust_region_step(g, hessian, radius, floor_rtol=1e-6):
     return p, max(predicted, 0.0)
 
 
-def minimize_newton(evaluate, z0, *, radius, max_radius, xtol, gtol, max_launches, first=None):
+def minimize_newton(evaluate, z0, *, radius, max_radius, xtol, gtol, max_launches, first=None,
+                    gradient_fallback=False):
     """Minimise from z0 with ``evaluate(z) -> (f, g, B, extra)`` (one launch each).
 
     ``radius`` is the initial trust region, ``max_radius`` its cap, both in metres (scaled units);
@@ -104,6 +109,17 @@ def minimize_newton(evaluate, z0, *, radius, max_radius, xtol, gtol, max_launche
             elif ratio < 0.25:
                 radius = 0.5 * step
         else:
+            if gradient_fallback and trials < max_launches:
+                # the stencil's gradient is smoothed over +-2 steps: along it, a step as long as
+                # the region often descends where the model's shorter step met a bump
+                q = -g * (radius / np.linalg.norm(g))
+                trial = evaluate(z + q)
+                launches += 1
+                trials += 1
+                if trial[0] < f:
+                    z, (f, g, hess, extra) = z + q, trial
+                    nit += 1
+                    continue
             radius = 0.25 * step
     return NewtonResult(z=z, fun=f, grad=g, hessian=hess, extra=extra, status=status, nit=nit,
                         launches=launches)

@@ -17,7 +17,7 @@ def random_symmetric(rng, definite):
 
 @pytest.mark.parametrize("definite", [True, False])
 def test_the_step_minimises_the_model_within_the_region(rng, definite):
-    for _ in range(20):
+    for _ in range(30):
         hess = random_symmetric(rng, definite)
         g = rng.standard_normal(3) * rng.uniform(0.1, 10.0)
         radius = rng.uniform(0.01, 2.0)
@@ -31,9 +31,24 @@ def test_the_step_minimises_the_model_within_the_region(rng, definite):
         ref = optimize.minimize(model, np.zeros(3), jac=lambda q: g + b @ q, method="SLSQP",
                                 constraints=[{"type": "ineq", "fun": lambda q: radius**2 - q @ q}],
                                 options={"ftol": 1e-12, "maxiter": 500})
+        assert ref.x @ ref.x <= radius**2 * (1 + 1e-6)
         assert np.linalg.norm(p) <= radius * (1 + 2e-3)
         assert model(p) <= ref.fun + 1e-3 * abs(ref.fun)
         assert np.isclose(predicted, -model(p), rtol=1e-9, atol=1e-12)
+
+
+def test_the_gradient_fallback_steps_out_of_a_small_dip():
+    target, z0 = np.array([1.0, 0.0, 0.0]), np.zeros(3)
+
+    def evaluate(z):        # a bowl around target, with a narrow dip at z0; the "stencil" gradient
+        f = float((z - target) @ (z - target)) - 0.5 * np.exp(-((z - z0) @ (z - z0)) / (2 * 0.01**2))
+        return f, 2.0 * (z - target), 100.0 * np.eye(3), None       # sees the bowl, its curvature is off
+
+    kwargs = dict(radius=0.5, max_radius=0.5, xtol=1e-3, gtol=1e-9, max_launches=50)
+    stuck = minimize_newton(evaluate, z0, **kwargs)
+    assert stuck.status == Status.NO_DESCENT and np.array_equal(stuck.z, z0)
+    res = minimize_newton(evaluate, z0, gradient_fallback=True, **kwargs)
+    assert res.fun < 0.1 < evaluate(z0)[0] and np.linalg.norm(res.z - target) < 0.5
 
 
 def test_minimises_a_smooth_function_to_scipys_answer():

@@ -1,0 +1,112 @@
+"""What each speed-up of the real-time issue buys, measured one at a time (an ablation).
+
+Each configuration runs the paper's corridor rows of bench/tune_defaults.py (Table 1 both rows,
+Table 2, Table 1 against a noisy B; 100 seeded trials each) and the real-map pairs of
+bench/realtime.py, and reports success, the median time per match on Table 1's wide row, kernel
+launches per match and the ratio of that median to the default's, all in one run.
+
+    python bench/ablation.py                 # writes bench/ABLATION.md (about 10 minutes)
+    python bench/ablation.py --trials 30 --out /tmp/ablation.md
+"""
+
+import argparse
+import contextlib
+import datetime
+import os
+import platform
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import taichi_match as tm
+from taichi_match import _kernels, _prepared
+from taichi_match.reproduce import git_revision
+from taichi_match.scenes import corridor, noisy_copy, parallel_corridors_y
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import realtime  # noqa: E402
+from tune_defaults import ROWS  # noqa: E402
+
+
+@contextlib.contextmanager
+def switched(direct_launch=True, stencil_kernel=True):
+    saved = _kernels.DIRECT_LAUNCH, _prepared.STENCIL_KERNEL_MIN_CELLS
+    _kernels.DIRECT_LAUNCH = direct_launch
+    _prepared.STENCIL_KERNEL_MIN_CELLS = saved[1] if stencil_kernel else float("inf")
+    try:
+        yield
+    finally:
+        _kernels.DIRECT_LAUNCH, _prepared.STENCIL_KERNEL_MIN_CELLS = saved
+
+
+CONFIGS = (
+    ("default: Newton, 3 levels, stencil kernel, direct launch", {}, {}),
+    ("- direct launch (Taichi's own call)", {}, dict(direct_launch=False)),
+    ("- stencil kernel (25 poses through the general kernel)", {}, dict(stencil_kernel=False)),
+    ("- both", {}, dict(direct_launch=False, stencil_kernel=False)),
+    ("Newton, 1 level (no pyramid)", dict(levels=1), {}),
+    ("Newton, 2 levels", dict(levels=2), {}),
+    ("Newton, 4 levels", dict(levels=4), {}),
+    ("BFGS + compass polish, 3 levels (previous default)", dict(optimizer="bfgs"), {}),
+    ("BFGS, 1 level (the paper's algorithm)", dict(optimizer="bfgs", levels=1), {}),
+)
+
+
+def corridor_rows(matcher, grid, trials, seed):
+    cells, wide = [], None
+    for i, (name, ranges, centre_y, bands, noise) in enumerate(ROWS):
+        rng = np.random.default_rng(seed + i)
+        target_y = 0.0 if centre_y == 0.0 else parallel_corridors_y()
+        errors, results = [], []
+        for _ in range(trials):
+            r0 = rng.uniform(-1.0, 1.0, 3) * ranges + (0.0, centre_y, 0.0)
+            b = grid if noise is None else noisy_copy(grid, rng=rng, **noise)
+            res = matcher.match(grid, b, r0)
+            errors.append((abs(res.pose[1] - target_y), abs(res.pose[2])))
+            results.append(res)
+        errors = np.array(errors)
+        cells.append(" / ".join(f"{100 * np.mean((errors[:, 0] < dy) & (errors[:, 1] < dt)):.0f}"
+                                for dy, dt in bands))
+        if name == "T1 +-1.5":
+            wide = results
+    seconds = np.array([r.seconds for r in wide])
+    return cells, 1e3 * np.median(seconds), 1e3 * np.percentile(seconds, 95), np.mean([r.launches for r in wide])
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--trials", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=str(HERE / "ABLATION.md"))
+    args = parser.parse_args()
+    grid = corridor()
+    lines = ["# Ablation of the real-time speed-ups", "",
+             f"`python bench/ablation.py` at revision {git_revision()} on {datetime.date.today()}: "
+             f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}. "
+             f"{args.trials} trials per corridor row (success % in the paper's bands, as in bench/TUNING.md); "
+             "times are per match on Table 1's wide row (x, y in +-1.5 m, theta in +-0.38 rad); "
+             "real maps as in bench/realtime.py.", "",
+             "| configuration | T1 +-0.5 | T1 +-1.5 | T2 (3 bands) | T1 +-0.5 noisy (2 bands) | real maps | "
+             "median ms | p95 ms | launches | time / default |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    print("\n".join(lines), flush=True)
+    base = None
+    for label, options, switches in CONFIGS:
+        with switched(**switches):
+            matcher = tm.Matcher(**options)
+            matcher.match(grid, grid, (0.1, 0.1, 0.0))                 # compile outside the timings
+            cells, median, p95, launches = corridor_rows(matcher, grid, args.trials, args.seed)
+            real = realtime.real_map_figures(8, matcher=matcher)
+        base = median if base is None else base
+        line = (f"| {label} | {' | '.join(cells)} | {real['success']:.1f} % | {median:.1f} | {p95:.1f} | "
+                f"{launches:.1f} | {median / base:.2f} |")
+        print(line, flush=True)
+        lines.append(line)
+    Path(args.out).write_text("\n".join(lines) + "\n")
+    print(f"\nwrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
