@@ -25,7 +25,7 @@ The measurements behind the default are in ``bench/TUNING.md``.
 from typing import Literal
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, signal
 
 from ._errors import InvalidOptionError
 from ._grid import GridMap
@@ -33,6 +33,24 @@ from ._grid import GridMap
 __all__ = ["blur", "BLUR_KINDS"]
 
 BLUR_KINDS = ("gaussian", "ramp")
+
+
+# Kernels at least this many taps wide are applied by FFT: the same sums (to rounding), in time
+# independent of the width (measured on 480 x 480 cells, sigma = 20 cells: 15 ms direct, 6 ms FFT).
+_FFT_MIN_TAPS = 25
+_TRUNCATE = 3.0
+
+
+def gaussian_filter(stack, sigma):
+    """``scipy.ndimage.gaussian_filter(a, sigma, mode="constant", truncate=3)`` of each 2-D array
+    of ``stack`` (shape (k, rows, cols)): the normalised, truncated Gaussian, zeros outside."""
+    radius = int(_TRUNCATE * sigma + 0.5)
+    if 2 * radius + 1 < _FFT_MIN_TAPS:
+        return np.stack([ndimage.gaussian_filter(a, sigma, mode="constant", truncate=_TRUNCATE) for a in stack])
+    taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+    taps /= taps.sum()
+    out = signal.fftconvolve(stack, taps[None, None, :], mode="same", axes=2)
+    return signal.fftconvolve(out, taps[None, :, None], mode="same", axes=1)
 
 
 def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp"] = "gaussian",
@@ -49,9 +67,8 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp"] = "ga
     unknown = np.isnan(prob)
     if kind == "gaussian":
         sigma = width / grid.resolution
-        num = ndimage.gaussian_filter(np.where(unknown, 0.0, prob), sigma, mode="constant", truncate=3.0)
-        den = ndimage.gaussian_filter((~unknown).astype(np.float64), sigma, mode="constant", truncate=3.0)
-        out = np.clip(num / np.maximum(den, 1e-300), 0.0, 1.0)
+        both = gaussian_filter(np.stack([np.where(unknown, 0.0, prob), (~unknown).astype(np.float64)]), sigma)
+        out = np.clip(both[0] / np.maximum(both[1], 1e-300), 0.0, 1.0)
     else:
         occ = np.nan_to_num(prob, nan=0.0) >= occupied
         if not occ.any():

@@ -51,7 +51,7 @@ class PreparedMap:
         self.n_known = int(known.sum())
         # rms distance of the known cells from the map frame's origin: a rotation by d theta moves
         # a typical cell by radius * d theta (at least one cell, for maps of a single cell)
-        centres = grid.cell_centres()[known]
+        centres = grid.cell_centres(*np.nonzero(known))
         self.radius = max(float(np.sqrt(np.mean(np.sum(centres**2, axis=1)))) if len(centres) else 0.0,
                           grid.resolution)
 

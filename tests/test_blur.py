@@ -82,3 +82,13 @@ def test_bad_width(width):
 def test_bad_kind():
     with pytest.raises(ValueError, match="blur kind"):
         blur(GridMap(np.zeros((2, 2)), 0.1), 0.1, kind="box")
+
+
+@pytest.mark.parametrize("shape, sigma", [((480, 480), 20.0), ((37, 501), 7.3), ((5, 3), 20.0), ((60, 60), 2.0)])
+def test_the_fft_gaussian_equals_scipys(rng, shape, sigma):
+    from scipy import ndimage
+    from taichi_match._blur import gaussian_filter
+
+    stack = rng.random((2,) + shape)
+    expected = np.stack([ndimage.gaussian_filter(a, sigma, mode="constant", truncate=3.0) for a in stack])
+    assert np.allclose(gaussian_filter(stack, sigma), expected, rtol=0, atol=1e-12)
