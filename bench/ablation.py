@@ -51,6 +51,8 @@ CONFIGS = (
     ("Newton, 4 levels", dict(levels=4), {}),
     ("BFGS + compass polish, 3 levels (previous default)", dict(optimizer="bfgs"), {}),
     ("BFGS, 1 level (the paper's algorithm)", dict(optimizer="bfgs", levels=1), {}),
+    ("bilinear A, Newton (analytic gradient; Hessian from 7 poses)", dict(interpolation="bilinear"), {}),
+    ("bilinear A, BFGS (analytic gradient, 1 pose per launch)", dict(interpolation="bilinear", optimizer="bfgs"), {}),
 )
 
 
@@ -80,6 +82,7 @@ def main():
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=str(HERE / "ABLATION.md"))
+    parser.add_argument("--only", nargs="+", type=int, metavar="ROW", help="run only these rows (0 = default)")
     args = parser.parse_args()
     grid = corridor()
     lines = ["# Ablation of the real-time speed-ups", "",
@@ -93,7 +96,9 @@ def main():
              "|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(lines), flush=True)
     base = None
-    for label, options, switches in CONFIGS:
+    for row, (label, options, switches) in enumerate(CONFIGS):
+        if args.only is not None and row not in args.only:
+            continue
         with switched(**switches):
             matcher = tm.Matcher(**options)
             matcher.match(grid, grid, (0.1, 0.1, 0.0))                 # compile outside the timings

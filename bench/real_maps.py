@@ -143,7 +143,10 @@ def main():
     options = {}
     for item in args.option:
         key, _, value = item.partition("=")
-        options[key] = value if key == "blur_kind" else int(value) if key in ("levels", "max_iterations") else float(value)
+        if key in ("blur_kind", "optimizer", "interpolation", "engine"):
+            options[key] = value
+        else:
+            options[key] = int(value) if key in ("levels", "max_iterations", "refine_iterations") else float(value)
     if not MAPS.is_dir():
         raise SystemExit(f"{MAPS} not found: the real maps live in ../shared/maps")
     try:

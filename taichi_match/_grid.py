@@ -104,13 +104,17 @@ class GridMap:
     def cell_of(self, points):
         """Eq. (3): integer (row, col) of the cells the map-frame points (..., 2) fall in (may lie
         outside the grid)."""
+        rows, cols = self.grid_coordinates(points)
+        return np.floor(rows), np.floor(cols)
+
+    def grid_coordinates(self, points):
+        """Continuous (row, col) of map-frame points (..., 2): cell (i, j) spans [i, i+1) x [j, j+1),
+        its centre is (i + 1/2, j + 1/2)."""
         points = np.asarray(points, dtype=np.float64)
         dx = points[..., 0] - self._origin[0]
         dy = points[..., 1] - self._origin[1]
         c, s = np.cos(self._yaw), np.sin(self._yaw)
-        cols = np.floor((c * dx + s * dy) / self._resolution)
-        rows = np.floor((-s * dx + c * dy) / self._resolution)
-        return rows, cols
+        return (-s * dx + c * dy) / self._resolution, (c * dx + s * dy) / self._resolution
 
     def with_prob(self, prob):
         """A map with the same geometry and new probabilities."""

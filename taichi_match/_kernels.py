@@ -240,12 +240,52 @@ def _build_kernel(ti):
             else:
                 group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[4], False)
 
-    return Kernels(discrepancy_rows, hessian_stencil_rows)
+    @ti.kernel
+    def bilinear_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                      affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
+                      out: ti.types.ndarray(dtype=ti.f32, ndim=3)):
+        # A interpolated bilinearly between its cell centres; per (pose, row): e, the overlap, and
+        # sums of sign(p_A - p_B) times dp_A/du, (dp_A/du) j, dp_A/dv, (dp_A/dv) j, from which the
+        # caller forms the gradient with the affine map's derivatives (the chain rule per row)
+        u_max = a.shape[1] - 2
+        v_max = a.shape[0] - 2
+        for k, r in ti.ndrange(affine.shape[0], rows.shape[0]):
+            i = rows[r, 0]
+            du = ti.f32(affine[k, 0])
+            dv = ti.f32(affine[k, 3])
+            u0 = ti.f32(affine[k, 1] * i + affine[k, 2]) - 0.5         # from cell centres
+            v0 = ti.f32(affine[k, 4] * i + affine[k, 5]) - 0.5
+            acc = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f32)
+            for j in range(rows[r, 1], rows[r, 2]):
+                fu = ti.min(ti.max(u0 + du * j, 0.0), ti.f32(u_max))
+                fv = ti.min(ti.max(v0 + dv * j, 0.0), ti.f32(v_max))
+                iu = ti.cast(fu, ti.i32)
+                iv = ti.cast(fv, ti.i32)
+                tu = fu - iu
+                tv = fv - iv
+                a00 = a[iv, iu]
+                a01 = a[iv, iu + 1]
+                a10 = a[iv + 1, iu]
+                a11 = a[iv + 1, iu + 1]
+                pb = b[i, j]
+                ok = (a00 >= 0.0) & (a01 >= 0.0) & (a10 >= 0.0) & (a11 >= 0.0) & (pb >= 0.0)
+                value = (a00 * (1.0 - tu) + a01 * tu) * (1.0 - tv) + (a10 * (1.0 - tu) + a11 * tu) * tv
+                d = value - pb
+                s = ti.select(ok, ti.select(d > 0.0, 1.0, ti.select(d < 0.0, -1.0, 0.0)), 0.0)
+                g_u = s * ((1.0 - tv) * (a01 - a00) + tv * (a11 - a10))
+                g_v = s * ((1.0 - tu) * (a10 - a00) + tu * (a11 - a01))
+                acc += ti.Vector([ti.select(ok, ti.abs(d), 0.0), ti.select(ok, 1.0, 0.0),
+                                  g_u, g_u * j, g_v, g_v * j], dt=ti.f32)
+            for m in ti.static(range(6)):
+                out[m, k, r] = acc[m]
+
+    return Kernels(discrepancy_rows, hessian_stencil_rows, bilinear_rows)
 
 
 class Kernels(typing.NamedTuple):
     poses: object          # discrepancy_rows: any batch of poses
     stencil: object        # hessian_stencil_rows: the 25 poses of the Hessian stencil
+    bilinear: object       # bilinear_rows: e, overlap and gradient sums with A interpolated
 
 
 _FAST = {}       # (kernel, count mode) -> (compiled kernel, compiled data), or None: no fast path
@@ -253,7 +293,8 @@ DIRECT_LAUNCH = True     # False: always Taichi's own call (for benchmarks)
 
 
 def _launch(kernel, arrays, mode):
-    """``kernel(*arrays, mode)``, through Taichi's launch context directly once compiled.
+    """``kernel(*arrays, mode)`` (``kernel(*arrays)`` if mode is None), through Taichi's launch
+    context directly once compiled.
 
     Taichi's Python call path checks and converts every argument on every call, about 30 us per
     launch here, a tenth of a small launch. Our arrays are always C-contiguous with the dtypes
@@ -270,16 +311,21 @@ def _launch(kernel, arrays, mode):
             ctx.set_arg_external_array_with_shape((index,), array.ctypes.data, array.nbytes, array.shape, 0)
         _STATE["ti"].lang.impl.get_runtime().prog.launch_kernel(compiled, ctx)
         return
-    kernel(*arrays, mode)                          # (Taichi copies arrays that are not C-contiguous)
+    kernel(*arrays, *_templates(mode))             # (Taichi copies arrays that are not C-contiguous)
     if fast is False:
         _FAST[(kernel, mode)] = _compiled(kernel, arrays, mode)
+
+
+def _templates(mode):
+    """The template arguments after the arrays: the count mode, or none (``mode`` None)."""
+    return () if mode is None else (mode,)
 
 
 def _compiled(kernel, arrays, mode):
     """(compiled kernel, compiled data) of ``kernel`` for these arguments, or None."""
     try:
         primal = kernel._primal
-        t_kernel = primal.compiled_kernels[primal.ensure_compiled(*arrays, mode)]
+        t_kernel = primal.compiled_kernels[primal.ensure_compiled(*arrays, *_templates(mode))]
         prog = _STATE["ti"].lang.impl.get_runtime().prog
         compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
         t_kernel.make_launch_context()
@@ -330,6 +376,19 @@ class TaichiEngine:
         with _LOCK:
             _launch(ensure_initialized().poses, (self._a, self._b, self._rows, affine, out), mode)
         return self._totals(out, mode)
+
+    def bilinear(self, affine):
+        """A interpolated bilinearly: (e (N,), overlap (N,) int64, row sums (4, N, R) float64 of
+        sign * dp_A/du, sign * dp_A/du * j, sign * dp_A/dv, sign * dp_A/dv * j)."""
+        n, n_rows = affine.shape[0], self._rows.shape[0]
+        if n_rows == 0:
+            return np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros((4, n, 0))
+        affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
+        out = np.empty((6, n, n_rows), dtype=np.float32)
+        with _LOCK:
+            _launch(ensure_initialized().bilinear, (self._a, self._b, self._rows, affine, out), None)
+        counts = out[1].sum(axis=1, dtype=np.float64).astype(np.int64)
+        return out[0].sum(axis=1, dtype=np.float64), counts, out[2:].astype(np.float64)
 
     @staticmethod
     def _totals(out, mode):

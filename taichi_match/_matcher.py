@@ -42,6 +42,7 @@ ENTRY_RADIUS_CELLS = 4.0          # middle levels
 ENTRY_RADIUS_CELLS_FINEST = 1.0   # the given maps
 XTOL_DEFAULT = {"newton": 0.25, "bfgs": 0.05}
 OPTIMIZERS = tuple(XTOL_DEFAULT)
+INTERPOLATIONS = ("nearest", "bilinear")
 
 
 @dataclass(frozen=True)
@@ -73,10 +74,16 @@ class MatchOptions:
     refine_iterations : budget on each finer level (levels > 1): Newton launches after the first
         (from a trust region of 4 cells, 1 on the given maps); for BFGS, iterations on the given
         maps (of at most two cells), the levels between getting only the compass search.
-    optimizer : "newton" (default): trust-region Newton on the stencil's own Hessian, one launch
+    optimizer : None (default): "newton" with nearest-cell lookup, "bfgs" with bilinear.
+        "newton": trust-region Newton on the stencil's own Hessian, one launch
         of the 25 poses of eq. (10)-(12) per iteration, whose last launch also gives the
         covariance; "bfgs": the paper's BFGS with the 13-pose gradient stencil (eq. 9-10),
         finished by a compass search, then one launch for the Hessian.
+    interpolation : "nearest" (the paper's eq. 6: B's cell centre looks up A's cell) or
+        "bilinear" (beyond the paper: A interpolated between its cell centres, a cell of B
+        counting where the four around it are known). Bilinear e is continuous away from unknown
+        cells; its gradient is analytic (one pose per evaluation) and its Hessian, also for the
+        covariance, the central difference of gradients one step either side (7 poses).
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
     """
@@ -94,7 +101,8 @@ class MatchOptions:
     max_iterations: int = 100
     levels: int = 3
     refine_iterations: int = 3
-    optimizer: Literal["newton", "bfgs"] = "newton"
+    optimizer: Optional[Literal["newton", "bfgs"]] = None
+    interpolation: Literal["nearest", "bilinear"] = "nearest"
     covariance_scale: float = 1.0
     engine: Literal["taichi", "numpy"] = "taichi"
 
@@ -119,15 +127,27 @@ class MatchOptions:
             raise InvalidOptionError(f"refine_iterations must be an integer >= 0; got {self.refine_iterations!r}")
         if self.blur_kind not in BLUR_KINDS:
             raise InvalidOptionError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
-        if self.optimizer not in OPTIMIZERS:
-            raise InvalidOptionError(f"optimizer must be one of {OPTIMIZERS}; got {self.optimizer!r}")
+        if self.interpolation not in INTERPOLATIONS:
+            raise InvalidOptionError(f"interpolation must be one of {INTERPOLATIONS}; got {self.interpolation!r}")
+        if self.optimizer is not None and self.optimizer not in OPTIMIZERS:
+            raise InvalidOptionError(f"optimizer must be one of {OPTIMIZERS} or None; got {self.optimizer!r}")
         if self.engine not in ENGINES:
             raise InvalidOptionError(f"engine must be one of {ENGINES}; got {self.engine!r}")
 
     @property
     def step_tolerance(self):
         """xtol, or its default for the optimizer."""
-        return self.xtol if self.xtol is not None else XTOL_DEFAULT[self.optimizer]
+        return self.xtol if self.xtol is not None else XTOL_DEFAULT[self.method]
+
+    @property
+    def method(self):
+        """The optimizer in use: ``optimizer``, or by default "newton" with nearest-cell lookup and
+        "bfgs" with bilinear interpolation (whose analytic gradient leaves out the jumps where B's
+        cells cross onto unknown cells of A, which a Newton model then misses; measured in
+        bench/ABLATION.md)."""
+        if self.optimizer is not None:
+            return self.optimizer
+        return "bfgs" if self.interpolation == "bilinear" else "newton"
 
     def weight(self, known_cells_b):
         """K of eq. (8) for a map B with ``known_cells_b`` known cells."""
@@ -266,7 +286,7 @@ class Matcher:
         prep_b = self.prepare(b, opts.blur, opts.blur_kind)
         counter = _Counter()
         full_weight = opts.weight(prep_b.n_known)
-        if opts.optimizer == "bfgs":
+        if opts.method == "bfgs":
             r, status, nit, cost_value, e, overlap, information = self._bfgs_levels(
                 prep_a, prep_b, opts, r0, full_weight, counter)
         else:
@@ -297,7 +317,7 @@ class Matcher:
             # the overlap is needed at the start (is there any?) and at the end (the result's)
             evaluate = functools.partial(cost.value_gradient_hessian, count="first" if level == 0 else "none")
             first = cost.value_gradient_hessian(r * cost.scale, count="first" if level in (0, top) else "none")
-            if level == top and first[3][1][0] == 0:
+            if level == top and first[3][1] == 0:
                 return r0, Status.NO_OVERLAP, 0, first[0], 0.0, 0, np.zeros((3, 3))
             if level == top:
                 radius, budget = cost.max_step, opts.max_iterations
@@ -310,8 +330,8 @@ class Matcher:
             r, nit = res.z / cost.scale, nit + res.nit
             if level == top:          # the finer levels refine within a fixed budget of launches
                 status = res.status
-        values, counts = res.extra
-        return r, status, nit, res.fun, values[0], counts[0], hessian_from_stencil(values, cost.steps)
+        e, overlap, information = res.extra
+        return r, status, nit, res.fun, e, overlap, information
 
     @staticmethod
     def _bfgs_levels(prep_a, prep_b, opts, r0, full_weight, counter):
@@ -340,9 +360,9 @@ class Matcher:
             z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.step_tolerance * eps,
                                       max_step=cost.max_step)
             r = z / cost.scale
-        # eq. (11)-(12) on the given maps, one launch of 25 poses
-        values, counts = cost.evaluate(hessian_stencil(r, cost.steps))
-        return r, status, nit, cost_value, values[0], counts[0], hessian_from_stencil(values, cost.steps)
+        # eq. (11)-(12) on the given maps, one launch
+        _, _, _, (e, overlap, information) = cost.value_gradient_hessian(r * cost.scale, count="first")
+        return r, status, nit, cost_value, e, overlap, information
 
 
 class _Counter:
@@ -359,10 +379,14 @@ class _LevelCost:
     Poses r are (x, y, theta); the optimisers work in z = r * scale, all in metres: theta times
     B's rms radius, so that a unit step moves a typical cell of B by about a metre whichever way
     it goes. e is a sum over B's cells, so K follows the number of cells at this level.
+    With ``interpolation="nearest"`` (the paper's e) derivatives come from the stencils of
+    eq. (10)-(12); with "bilinear" the gradient is analytic (one pose) and the Hessian is the
+    central difference of gradients at +-1 step on each axis (7 poses).
     """
 
     def __init__(self, pa, pb, prep_b, opts, r0, full_weight, counter):
         self._engine = make_engine(opts.engine, pa, pb)
+        self._bilinear = opts.interpolation == "bilinear"
         self._counter = counter
         self._r0 = r0
         self._rotation_scale = opts.rotation_scale
@@ -371,30 +395,49 @@ class _LevelCost:
         self.scale = np.array([1.0, 1.0, prep_b.radius])
         self.max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * self.steps[0])
 
+    def _count(self, poses):
+        self._counter.launches += 1
+        self._counter.poses += poses
+
     def evaluate(self, poses, count="first"):
         """e and the overlap (see ``make_engine`` for ``count``) for a batch of poses: one launch."""
-        self._counter.launches += 1
-        self._counter.poses += len(poses)
+        self._count(len(poses))
+        if self._bilinear:
+            return self._engine.bilinear(poses)[:2]
         return self._engine(poses, count)
 
     def value_and_gradient(self, r, count="none"):
-        """h and its stencil gradient (eq. 10) at r, from one launch of 13 poses."""
-        values, counts = self.evaluate(gradient_stencil(r, self.steps), count)
+        """h and its gradient at r: the 13-pose stencil (eq. 10), or one pose (bilinear)."""
+        if self._bilinear:
+            self._count(1)
+            values, counts, grads = self._engine.bilinear(r[None, :])
+            grad = grads[0]
+        else:
+            values, counts = self.evaluate(gradient_stencil(r, self.steps), count)
+            grad = gradient_from_stencil(values, self.steps)
         p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
-        return values[0] + p_val, gradient_from_stencil(values, self.steps) + p_grad, counts
+        return values[0] + p_val, grad + p_grad, counts
 
     def value_gradient_hessian(self, z, count="none"):
-        """h, its gradient and Hessian in z (eq. 10, 12 plus the prior's), from one launch of 25
-        poses; extra: (e at the stencil's poses, overlap counts or None)."""
+        """h, its gradient and Hessian in z (the prior's included), from one launch; extra:
+        (e, overlap or None, Hessian of e in r) at z."""
         r = z / self.scale
-        self._counter.launches += 1
-        self._counter.poses += 25
-        values, counts = self._engine.hessian_stencil(r, self.steps, count)
-        grad, hess = gradient_from_stencil(values, self.steps), hessian_from_stencil(values, self.steps)
+        if self._bilinear:
+            self._count(7)
+            poses = r + np.vstack([np.zeros(3), np.diag(self.steps), -np.diag(self.steps)])
+            values, counts, grads = self._engine.bilinear(poses)
+            grad = grads[0]
+            hess = (grads[1:4] - grads[4:7]).T / (2.0 * self.steps)      # column q: d grad / d r_q
+            hess = 0.5 * (hess + hess.T)
+        else:
+            self._count(25)
+            values, counts = self._engine.hessian_stencil(r, self.steps, count)
+            grad, hess = gradient_from_stencil(values, self.steps), hessian_from_stencil(values, self.steps)
         p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
-        grad = grad + p_grad
-        hess = hess + prior_hessian(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
-        return values[0] + p_val, grad / self.scale, hess / np.outer(self.scale, self.scale), (values, counts)
+        h_prior = prior_hessian(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
+        extra = (values[0], None if counts is None else counts[0], hess)
+        return (values[0] + p_val, (grad + p_grad) / self.scale,
+                (hess + h_prior) / np.outer(self.scale, self.scale), extra)
 
     def fun_grad(self, z):
         h, grad, _ = self.value_and_gradient(z / self.scale)

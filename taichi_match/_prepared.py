@@ -15,7 +15,7 @@ from ._errors import InvalidOptionError
 from ._grid import GridMap
 from ._kernels import PAD, TaichiEngine
 from ._pyramid import coarsen
-from ._reference import NumpyDiscrepancy
+from ._reference import NumpyBilinear, NumpyDiscrepancy
 
 __all__ = ["PreparedMap", "make_engine", "ENGINES"]
 
@@ -105,9 +105,12 @@ class Engine:
         self._resolution_a = a.resolution
         # the stencil kernel needs A's grid axes along its frame's axes (whole-cell shifts)
         self._stencil_kernel = a.blurred.corner_pose[2] == 0.0 and b.n_known >= STENCIL_KERNEL_MIN_CELLS
+        self._a_grid, self._b_grid = a.blurred, b.blurred
+        self._bilinear_oracle = None
         if name == "taichi":
             self._kernel = TaichiEngine(a.padded, b.values, b.rows)
             self._affine = AffineMap(a.blurred, b.blurred)
+            self._rows_i = b.rows[:, 0].astype(np.float64)
         else:
             self._oracle = NumpyDiscrepancy(a.blurred, b.blurred)
 
@@ -124,3 +127,28 @@ class Engine:
             thetas = np.asarray(pose, dtype=np.float64) + np.outer(np.arange(-2.0, 3.0), [0.0, 0.0, steps[2]])
             return self._kernel.hessian_stencil(self._affine(thetas), count)
         return self(hessian_stencil(pose, steps), count)
+
+    def bilinear(self, poses):
+        """A interpolated bilinearly between its cell centres (an option beyond the paper):
+        (e (N,), overlap (N,), gradient of e in (x, y, theta) (N, 3)), one launch."""
+        poses = np.asarray(poses, dtype=np.float64)
+        if self.name != "taichi":
+            if self._bilinear_oracle is None:
+                self._bilinear_oracle = NumpyBilinear(self._a_grid, self._b_grid)
+            return self._bilinear_oracle(poses)
+        e, counts, sums = self._kernel.bilinear(self._affine(poses))
+        # u = c0 j + c1 i + c2, v = c3 j + c4 i + c5: d/dq sum = dc0 S(g_u j) + dc1 S(g_u i) + ...
+        su, suj, sv, svj = sums
+        totals = np.stack([suj.sum(axis=1), su @ self._rows_i, su.sum(axis=1),
+                           svj.sum(axis=1), sv @ self._rows_i, sv.sum(axis=1)], axis=1)      # (N, 6)
+        return e, counts, np.einsum("kqc,kc->kq", self._affine_derivatives(poses), totals)
+
+    def _affine_derivatives(self, poses, h=1e-6):
+        """(N, 3, 6): d affine coefficients / d (x, y, theta), by central differences (the map is
+        linear in x and y and smooth in theta: the error is ~h^2)."""
+        out = np.empty((len(poses), 3, 6))
+        for q in range(3):
+            step = np.zeros(3)
+            step[q] = h
+            out[:, q] = (self._affine(poses + step) - self._affine(poses - step)) / (2.0 * h)
+        return out

@@ -108,7 +108,8 @@ def _align(args):
 
     a, b = _load_pair(args)
     options = {k: v for k, v in (("blur", args.blur), ("prior_weight", args.prior_weight),
-                                 ("rotation_scale", args.rotation_scale), ("max_iterations", args.max_iterations))
+                                 ("rotation_scale", args.rotation_scale), ("max_iterations", args.max_iterations),
+                                 ("interpolation", args.interpolation), ("optimizer", args.optimizer))
                if v is not None}
     res = tm.match(a, b, args.initial, **options)
     cov = res.calibrated_covariance
@@ -189,6 +190,9 @@ def main(argv=None):
     align.add_argument("--g2o", nargs=2, type=int, metavar=("ID_A", "ID_B"),
                        help="also print a g2o EDGE_SE2 line (pose and information matrix)")
     align.add_argument("--blur", type=float, help="blur width, metres")
+    align.add_argument("--interpolation", choices=("nearest", "bilinear"),
+                       help="lookup in A: nearest cell (the paper's, default) or bilinear (slower, finer)")
+    align.add_argument("--optimizer", choices=("newton", "bfgs"), help="default: newton (nearest), bfgs (bilinear)")
     align.add_argument("--prior-weight", type=float, help="K of eq. (8)")
     align.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")
     align.add_argument("--max-iterations", type=int)

@@ -37,6 +37,13 @@ def test_align_json_g2o_and_plot(pair, tmp_path, capsys):
     assert (tmp_path / "o.png").stat().st_size > 10_000
 
 
+@pytest.mark.parametrize("extra", [["--interpolation", "bilinear"], ["--optimizer", "bfgs"]])
+def test_align_with_other_methods(pair, capsys, extra):
+    a, b, truth = pair
+    assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--json", *extra]) == 0
+    assert np.allclose(json.loads(capsys.readouterr().out)["pose"], truth, atol=0.05)
+
+
 def test_align_exit_codes(pair, tmp_path, capsys):
     a, b, _ = pair
     assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--max-iterations", "0"]) == 1

@@ -139,7 +139,7 @@ def test_bad_maps_and_options():
     for bad in (dict(blur=-1.0), dict(prior_weight=np.nan), dict(rotation_scale=0.0),
                 dict(max_iterations=-1), dict(step=0.0), dict(engine="cuda"), dict(max_iterations=2.5),
                 dict(levels=0), dict(levels=9), dict(refine_iterations=-1), dict(blur_kind="box"),
-                dict(optimizer="lbfgs"), dict(xtol=-1.0)):
+                dict(optimizer="lbfgs"), dict(xtol=-1.0), dict(interpolation="cubic")):
         with pytest.raises(InvalidOptionError):
             match(a, a, (0, 0, 0), **bad)
 
