@@ -16,9 +16,14 @@ needed here: ``pip install opencv-python-headless``.
 
     python bench/real_maps.py                        # 8 pairs x 3 guesses per map
     python bench/real_maps.py --pairs 20 --guesses 5 --seed 1
+    python bench/real_maps.py --out bench/REAL_MAPS.md                      # also write the table
+    python bench/real_maps.py --no-ecc --option interpolation=bilinear --out bench/REAL_MAPS.md --append
 """
 
 import argparse
+import datetime
+import os
+import sys
 import time
 from pathlib import Path
 
@@ -139,6 +144,8 @@ def main():
     parser.add_argument("--no-ecc", action="store_true", help="skip OpenCV")
     parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                         help="a MatchOptions field for taichi_match, e.g. --option prior_weight=30")
+    parser.add_argument("--out", help="also write the table (markdown) to this file")
+    parser.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
     args = parser.parse_args()
     options = {}
     for item in args.option:
@@ -184,17 +191,29 @@ def main():
                 line += ["-"] * 4
         rows.append(line)
         print(" | ".join(line), flush=True)
-    print()
-    print(f"# Real-map evaluation ({args.pairs} pairs x {args.guesses} guesses per map, seed {args.seed}; "
-          f"success: error < 2 cells and < 1 degree)")
-    print("| map | cell m | matches | ours success % | ours median err cm | ours median err deg | ours median ms "
-          "| ECC success % | ECC median err cm | ECC median err deg | ECC median ms |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    for line in rows:
-        print("| " + " | ".join(line) + " |")
+    from taichi_match.reproduce import git_revision
+
+    ecc = f"OpenCV {cv2.__version__}" if have_cv2 else "ECC not run"
+    text = [f"## taichi_match options: {args.option or 'defaults'}", "",
+            f"`python bench/real_maps.py {' '.join(sys.argv[1:])}` at revision {git_revision()}, "
+            f"{datetime.date.today()}, {os.cpu_count()}-core machine, {ecc}: {args.pairs} pairs x {args.guesses} "
+            f"initial guesses per map, seed {args.seed}; success = error below 2 cells and 1 degree.", "",
+            "| map | cell m | matches | ours success % | ours median err cm | ours median err deg | ours median ms "
+            "| ECC success % | ECC median err cm | ECC median err deg | ECC median ms |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    text += ["| " + " | ".join(line) + " |" for line in rows]
+    text.append("")
     for who in ("ours", "ecc"):
         if totals[who]:
-            print(f"{who}: {100 * np.mean(totals[who]):.1f} % success over {len(totals[who])} matches")
+            text.append(f"{who}: {100 * np.mean(totals[who]):.1f} % success over {len(totals[who])} matches  ")
+    print()
+    print("\n".join(text))
+    if args.out:
+        out = Path(args.out)
+        head = "" if args.append and out.exists() else ("# Real-map evaluation\n\nSee the docstring of "
+                                                        "bench/real_maps.py for the protocol.\n\n")
+        with out.open("a" if args.append else "w") as f:
+            f.write(head + "\n".join(text) + "\n\n")
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
 """taichi_match: the relative pose between two overlapping occupancy grid maps.
 
 Implements "Computation of the Optimal Relative Pose between Overlapping Grid Maps through
-Discrepancy Minimization": blur both maps once, minimise h = e + K ||r - r0|| with BFGS on
-four-point stencil gradients evaluated by batched Taichi kernels, and take the covariance from
-the numeric Hessian of e. Conventions are stated once in ``taichi_match._grid`` (maps) and
+Discrepancy Minimization": blur both maps once, minimise h = e + K ||r - r0|| from the stencils
+of eq. (10)-(12) evaluated by batched Taichi kernels (by default a trust-region Newton iteration
+on the stencil's Hessian over a map pyramid; the paper's BFGS with ``optimizer="bfgs"``), and
+take the covariance from the numeric Hessian of e. Conventions are stated once in ``taichi_match._grid`` (maps) and
 ``taichi_match._se2`` (poses).
 """
 
