@@ -1,9 +1,11 @@
 """Taichi kernels (CPU backend) evaluating eq. (6) for a batch of poses in one parallel launch.
 
-Two kernels: ``discrepancy_rows`` for any batch of poses, and ``hessian_stencil_rows`` for the 25
+Three kernels: ``discrepancy_rows`` for any batch of poses; ``hessian_stencil_rows`` for the 25
 poses of the Hessian stencil (eq. 10-12) when its x and y steps are whole cells of A along A's
-grid axes. Those poses then differ, per theta offset, only by whole-cell shifts of the lookup in
-A, so 5 index computations serve 25 poses and B's cell is read once for all of them.
+grid axes (those poses then differ, per theta offset, only by whole-cell shifts of the lookup in
+A, so 5 index computations serve 25 poses and B's cell is read once for all of them); and
+``bilinear_rows``, the option beyond the paper that interpolates A between its cell centres and
+also sums what the analytic gradient needs.
 
 The kernels know nothing but arrays:
 
@@ -15,9 +17,10 @@ The kernels know nothing but arrays:
   coordinates: ``u = c0*j + c1*i + c2`` (column) and ``v = c3*j + c4*i + c5`` (row); A's cell is
   (floor(v), floor(u)). ``_cost.affine_coefficients`` builds it from eq. (2)-(5).
 
-Output is one partial sum and (optionally) one count per (pose, row), written without atomics so the result is
-bit-identical run after run; the caller adds the rows in float64. Each row is summed in float32
-(at most a few thousand terms of size <= 1).
+Output is one partial sum (and optionally a count, or bilinear's gradient sums) per (pose, row),
+written without atomics so the result is bit-identical run after run; the caller adds the rows
+in float64. Each row is summed in float32 (at most a few thousand terms of size <= 1).
+After a kernel's first call, ``_launch`` passes the arrays straight to Taichi's launch context.
 
 Taichi is imported and initialised lazily, on the first evaluation: CPU backend, all allowed cores
 (its worker threads pinned one per core, see ``_pin_threads``), no banner, no network version
