@@ -137,6 +137,12 @@ def _build_kernel(ti):
     f32_2d = ti.types.ndarray(dtype=ti.f32, ndim=2)
 
     @ti.func
+    def row_start(affine: ti.template(), k, i):
+        """Per-cell steps (du, dv) along a row of B and A's coordinates (u0, v0) of the row's j = 0."""
+        return (ti.f32(affine[k, 0]), ti.f32(affine[k, 3]), ti.f32(affine[k, 1] * i + affine[k, 2]),
+                ti.f32(affine[k, 4] * i + affine[k, 5]))
+
+    @ti.func
     def row_sum(a: ti.template(), b: ti.template(), i, lo, hi, u0, v0, du, dv, u_max, v_max, count: ti.template()):
         acc = ti.f32(0.0)
         cnt = 0
@@ -161,10 +167,7 @@ def _build_kernel(ti):
         v_max = a.shape[0] - 1
         for k, r in ti.ndrange(affine.shape[0], rows.shape[0]):
             i = rows[r, 0]
-            du = ti.f32(affine[k, 0])
-            dv = ti.f32(affine[k, 3])
-            u0 = ti.f32(affine[k, 1] * i + affine[k, 2])
-            v0 = ti.f32(affine[k, 4] * i + affine[k, 5])
+            du, dv, u0, v0 = row_start(affine, k, i)
             acc = ti.f32(0.0)
             cnt = 0
             if ti.static(count_mode == 2):
@@ -225,10 +228,7 @@ def _build_kernel(ti):
         v_max = a.shape[0] - 1
         for r, t in ti.ndrange(rows.shape[0], 5):     # rows outer: a block of work items mixes all t
             i = rows[r, 0]
-            du = ti.f32(affine[t, 0])
-            dv = ti.f32(affine[t, 3])
-            u0 = ti.f32(affine[t, 1] * i + affine[t, 2])
-            v0 = ti.f32(affine[t, 4] * i + affine[t, 5])
+            du, dv, u0, v0 = row_start(affine, t, i)
             lo, hi = rows[r, 1], rows[r, 2]
             # one branch per (theta offset, row), outside the inner loops
             if t == 2:
@@ -254,10 +254,9 @@ def _build_kernel(ti):
         v_max = a.shape[0] - 2
         for k, r in ti.ndrange(affine.shape[0], rows.shape[0]):
             i = rows[r, 0]
-            du = ti.f32(affine[k, 0])
-            dv = ti.f32(affine[k, 3])
-            u0 = ti.f32(affine[k, 1] * i + affine[k, 2]) - 0.5         # from cell centres
-            v0 = ti.f32(affine[k, 4] * i + affine[k, 5]) - 0.5
+            du, dv, u0, v0 = row_start(affine, k, i)
+            u0 -= 0.5                                                  # from cell centres
+            v0 -= 0.5
             acc = ti.Vector([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dt=ti.f32)
             for j in range(rows[r, 1], rows[r, 2]):
                 fu = ti.min(ti.max(u0 + du * j, 0.0), ti.f32(u_max))

@@ -45,14 +45,8 @@ class NumpyDiscrepancy:
         return values, counts
 
 
-class NumpyBilinear:
+class NumpyBilinear(NumpyDiscrepancy):
     """e with A bilinearly interpolated, its overlap count and its gradient in (x, y, theta)."""
-
-    def __init__(self, a: GridMap, b: GridMap):
-        rows, cols = np.nonzero(b.known)
-        self._centres_b = b.cell_centres(rows, cols)
-        self._prob_b = b.prob[rows, cols]
-        self._a = a
 
     def __call__(self, poses):
         """Return (discrepancy (N,), overlap (N,) int64, gradient (N, 3))."""
