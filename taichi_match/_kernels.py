@@ -290,7 +290,7 @@ class Kernels(typing.NamedTuple):
     bilinear: object       # bilinear_rows: e, overlap and gradient sums with A interpolated
 
 
-_FAST = {}       # (kernel, count mode) -> (compiled kernel, compiled data), or None: no fast path
+_FAST = {}       # (kernel, count mode) -> (program, compiled kernel, compiled data), or None: no fast path
 DIRECT_LAUNCH = True     # False: always Taichi's own call (for benchmarks)
 
 
@@ -302,19 +302,22 @@ def _launch(kernel, arrays, mode):
     launch here, a tenth of a small launch. Our arrays are always C-contiguous with the dtypes
     the kernels declare, so after the first (ordinary) call with a given ``mode`` we keep the
     compiled kernel and pass the arrays' addresses and shapes straight to a launch context,
-    which is what Taichi 1.7's ``Kernel.launch_kernel`` does for numpy arrays. Should Taichi's
+    which is what Taichi 1.7's ``Kernel.launch_kernel`` does for numpy arrays. The compiled
+    kernel belongs to the Taichi program it was made in: when a host calls ``ti.init`` or
+    ``ti.reset`` again, the next call goes the ordinary way and is kept anew. Should Taichi's
     internals differ from 1.7's, the ordinary call is used.
     """
+    prog = _STATE["ti"].lang.impl.get_runtime().prog
     fast = _FAST.get((kernel, mode), False) if DIRECT_LAUNCH else None
-    if fast and all(array.flags.c_contiguous for array in arrays):
-        t_kernel, compiled = fast
+    if fast and fast[0] is prog and all(array.flags.c_contiguous for array in arrays):
+        _, t_kernel, compiled = fast
         ctx = t_kernel.make_launch_context()
         for index, array in enumerate(arrays):
             ctx.set_arg_external_array_with_shape((index,), array.ctypes.data, array.nbytes, array.shape, 0)
-        _STATE["ti"].lang.impl.get_runtime().prog.launch_kernel(compiled, ctx)
+        prog.launch_kernel(compiled, ctx)
         return
     kernel(*arrays, *_templates(mode))             # (Taichi copies arrays that are not C-contiguous)
-    if fast is False:
+    if fast is False or (fast and fast[0] is not prog):
         _FAST[(kernel, mode)] = _compiled(kernel, arrays, mode)
 
 
@@ -324,14 +327,14 @@ def _templates(mode):
 
 
 def _compiled(kernel, arrays, mode):
-    """(compiled kernel, compiled data) of ``kernel`` for these arguments, or None."""
+    """(program, compiled kernel, compiled data) of ``kernel`` for these arguments, or None."""
     try:
         primal = kernel._primal
         t_kernel = primal.compiled_kernels[primal.ensure_compiled(*arrays, *_templates(mode))]
         prog = _STATE["ti"].lang.impl.get_runtime().prog
         compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
         t_kernel.make_launch_context()
-        return t_kernel, compiled
+        return prog, t_kernel, compiled
     except Exception:  # pragma: no cover - another Taichi version
         return None
 

@@ -54,6 +54,28 @@ def test_a_host_runtime_is_reused_not_reset():
     assert out.returncode == 0, out.stderr
 
 
+def test_matching_goes_on_after_a_host_initialises_or_resets_taichi_again():
+    # the direct launch path keeps compiled kernels of one Taichi program; a new ti.init or a
+    # ti.reset must send the next call the ordinary way (it crashed with std::bad_alloc before)
+    out = run_python("""
+        import contextlib, io
+        import numpy as np
+        import taichi_match as tm
+        from taichi_match.scenes import corridor
+        g = corridor(size=4.0, width=2.0, resolution=0.05)
+        first = tm.match(g, g, (0.1, 0.1, 0.05))
+        import taichi as ti
+        with contextlib.redirect_stdout(io.StringIO()):
+            ti.init(arch=ti.cpu)
+        again = tm.match(g, g, (0.1, 0.1, 0.05))
+        ti.reset()
+        third = tm.match(g, g, (0.1, 0.1, 0.05))
+        assert np.allclose(first.pose, again.pose) and np.allclose(first.pose, third.pose), (first, again, third)
+        assert abs(first.pose[1]) < 0.05
+    """)
+    assert out.returncode == 0, out.stderr
+
+
 def test_a_child_forked_after_initialisation_gets_an_error_not_a_hang():
     out = run_python("""
         import os
