@@ -50,11 +50,17 @@ def rss_mb():
     return float("nan")
 
 
-def corridor_figures(trials, numpy_trials, seed=0):
+def corridor_block(matcher, grid, trials, seed):
+    """Table 1's wide row once more: the results of ``trials`` seeded matches."""
+    r0s = np.random.default_rng(seed).uniform(-1, 1, (trials, 3)) * (1.5, 1.5, 0.38)
+    return [matcher.match(grid, grid, r0) for r0 in r0s]
+
+
+def corridor_figures(trials, numpy_trials, seed=0, fast=None):
     """Table 1's wide row: our default against the same algorithm on the NumPy engine and against
     the paper's algorithm (one level, BFGS) on the NumPy engine, interleaved on shared trials."""
     grid = corridor()
-    fast = tm.Matcher()
+    fast = fast if fast is not None else tm.Matcher()
     same_numpy = tm.Matcher(engine="numpy")
     paper_numpy = tm.Matcher(engine="numpy", optimizer="bfgs", levels=1)
     fast.match(grid, grid, (0.1, 0.1, 0.0))
@@ -68,7 +74,7 @@ def corridor_figures(trials, numpy_trials, seed=0):
     t = np.array([r.seconds for r in ours])
     ok = np.mean([abs(r.pose[1]) < 0.025 and abs(r.pose[2]) < 0.045 for r in ours]) * 100
     shared = np.median(t[:numpy_trials])
-    return {"median_ms": 1e3 * np.median(t), "p95_ms": 1e3 * np.percentile(t, 95),
+    return {"median_ms": 1e3 * np.median(t), "p95_ms": 1e3 * np.percentile(t, 95), "results": ours,
             "speedup": np.median(same) / shared, "speedup_paper": np.median(paper) / shared,
             "numpy_ms": 1e3 * np.median(same), "paper_numpy_ms": 1e3 * np.median(paper),
             "launches": np.mean([r.launches for r in ours]),
@@ -228,18 +234,35 @@ def main():
         print(text, flush=True)
         lines.append(text)
 
-    c = corridor_figures(30 if q else 100, 3 if q else 10)
-    emit("| corridor (Table 1 wide row) | value | target |")
-    emit("|---|---|---|")
-    emit(f"| median full match (covariance included) | {c['median_ms']:.1f} ms | <= 5 ms |")
-    emit(f"| 95th percentile | {c['p95_ms']:.1f} ms | <= 10 ms |")
-    emit(f"| kernel launches per match | {c['launches']:.1f} | |")
-    emit(f"| speed-up over the same algorithm on the NumPy engine ({c['numpy_trials']} shared trials, "
-         f"NumPy median {c['numpy_ms']:.0f} ms) | {c['speedup']:.0f}x | >= 500x |")
-    emit(f"| speed-up over the paper's algorithm (1 level, BFGS) on the NumPy engine (NumPy median "
-         f"{c['paper_numpy_ms']:.0f} ms) | {c['speedup_paper']:.0f}x | |")
-    emit(f"| speed-up over the paper's 6 s | {6000 / c['median_ms']:.0f}x | |")
-    emit(f"| Table 1 success ({c['trials']} trials) | {c['success']:.0f} % | 98 % |")
+    # The corridor row is measured in three blocks spread over the run (start, middle, end), so
+    # that a burst of load from the machine's other tenants moves one block, not the figure; the
+    # target figures are taken over all three, the block medians are shown beside them.
+    header_len = len(lines)                             # the corridor rows go here, at the end
+    trials = 30 if q else 100
+    grid, fast = corridor(), tm.Matcher()
+    c = corridor_figures(trials, 3 if q else 10, fast=fast)
+    blocks = [c["results"]]
+
+    def corridor_rows():
+        results = [r for block in blocks for r in block]
+        t = np.array([r.seconds for r in results])
+        ok = np.mean([abs(r.pose[1]) < 0.025 and abs(r.pose[2]) < 0.045 for r in results]) * 100
+        medians = ", ".join(f"{1e3 * np.median([r.seconds for r in b]):.1f}" for b in blocks)
+        median = 1e3 * np.median(t)
+        return [
+            "| corridor (Table 1 wide row) | value | target |",
+            "|---|---|---|",
+            f"| median full match (covariance included), {len(t)} matches in {len(blocks)} blocks "
+            f"(block medians {medians} ms) | {median:.1f} ms | <= 5 ms |",
+            f"| 95th percentile | {1e3 * np.percentile(t, 95):.1f} ms | <= 10 ms |",
+            f"| kernel launches per match | {np.mean([r.launches for r in results]):.1f} | |",
+            f"| speed-up over the same algorithm on the NumPy engine ({c['numpy_trials']} shared trials of the "
+            f"first block, NumPy median {c['numpy_ms']:.0f} ms) | {c['speedup']:.0f}x | >= 500x |",
+            f"| speed-up over the paper's algorithm (1 level, BFGS) on the NumPy engine (NumPy median "
+            f"{c['paper_numpy_ms']:.0f} ms) | {c['speedup_paper']:.0f}x | |",
+            f"| speed-up over the paper's 6 s | {6000 / median:.0f}x | |",
+            f"| Table 1 success ({len(t)} matches) | {ok:.0f} % | 98 % |"]
+
     r = real_map_figures(2 if q else 20)
     r_bfgs = real_map_figures(2 if q else 20, matcher=tm.Matcher(optimizer="bfgs"))
     emit(f"| real-map pairs: median per match ({r['matches']} matches) | {r['median_ms']:.1f} ms | <= 10 ms |")
@@ -255,6 +278,7 @@ def main():
     emit(f"| kernel / gather bound | general {k['ratio']:.2f}x, stencil {k['ratio_stencil']:.2f}x | <= 2x |")
     emit(f"| bilinear kernel (option), 7 poses, value and analytic gradient | {k['ms_bilinear']:.2f} ms, "
          f"{k['bilinear']:.3f} ns per cell-pose | |")
+    blocks.append(corridor_block(fast, grid, trials, seed=1))
     f = fresh_process_figures()
     emit(f"| fresh process, warm cache: import + init + first match | {f['warm_s']:.2f} s "
          f"(inside Python {f['warm_inside_s']:.2f} s) | <= 1.5 s |")
@@ -264,6 +288,10 @@ def main():
     m = memory_figures(1000 if q else 10000)
     emit(f"| resident memory over {m['matches']} matches | {m['rss_after_10pct_mb']:.0f} -> {m['rss_end_mb']:.0f} MB "
          f"({m['growth_pct']:+.1f} %) | within 5 % |")
+    blocks.append(corridor_block(fast, grid, trials, seed=2))
+    for k, row in enumerate(corridor_rows()):
+        lines.insert(header_len + k, row)
+        print(row, flush=True)
     emit()
     sizes, shares = scaling_figures(3 if q else 5)
     emit("| map cells | known cells | median ms per match |")
