@@ -357,14 +357,9 @@ class TaichiEngine:
         mode = COUNT_MODES[count]
         if mode == 2:
             raise ValueError("the stencil kernel counts the overlap of the centre only")
-        n_rows = self._rows.shape[0]
-        if n_rows == 0:
+        if self._rows.shape[0] == 0:
             return np.zeros(25), (np.zeros(25, dtype=np.int64) if mode else None)
-        affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
-        out = np.zeros((2 if mode else 1, 25, n_rows), dtype=np.float32)
-        with _LOCK:
-            _launch(ensure_initialized().stencil, (self._a, self._b, self._rows, affine, out), mode)
-        return self._totals(out, mode)
+        return self._totals(self._run("stencil", affine, (2 if mode else 1, 25), mode), mode)
 
     def __call__(self, affine, count="all"):
         """affine: (N, 6) float64; count: which poses get an overlap count, "all", "first" or "none".
@@ -373,27 +368,29 @@ class TaichiEngine:
         first overlap is meaningful (the others are 0)."""
         mode = COUNT_MODES[count]
         n = affine.shape[0]
-        n_rows = self._rows.shape[0]
-        if n_rows == 0:
+        if self._rows.shape[0] == 0:
             return np.zeros(n), (np.zeros(n, dtype=np.int64) if mode else None)
-        affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
-        out = np.empty((2 if mode else 1, n, n_rows), dtype=np.float32)
-        with _LOCK:
-            _launch(ensure_initialized().poses, (self._a, self._b, self._rows, affine, out), mode)
-        return self._totals(out, mode)
+        return self._totals(self._run("poses", affine, (2 if mode else 1, n), mode), mode)
 
     def bilinear(self, affine):
         """A interpolated bilinearly: (e (N,), overlap (N,) int64, row sums (4, N, R) float64 of
         sign * dp_A/du, sign * dp_A/du * j, sign * dp_A/dv, sign * dp_A/dv * j)."""
-        n, n_rows = affine.shape[0], self._rows.shape[0]
-        if n_rows == 0:
+        n = affine.shape[0]
+        if self._rows.shape[0] == 0:
             return np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros((4, n, 0))
-        affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
-        out = np.empty((6, n, n_rows), dtype=np.float32)
-        with _LOCK:
-            _launch(ensure_initialized().bilinear, (self._a, self._b, self._rows, affine, out), None)
+        out = self._run("bilinear", affine, (6, n), None)
         counts = out[1].sum(axis=1, dtype=np.float64).astype(np.int64)
         return out[0].sum(axis=1, dtype=np.float64), counts, out[2:].astype(np.float64)
+
+    def _run(self, name, affine, planes, mode):
+        """One launch of the kernel ``name`` of ``Kernels``; returns its output, of shape
+        ``planes + (rows of B,)``, float32, one partial sum per row."""
+        affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
+        out = np.empty(planes + (self._rows.shape[0],), dtype=np.float32)
+        with _LOCK:
+            kernel = getattr(ensure_initialized(), name)
+            _launch(kernel, (self._a, self._b, self._rows, affine, out), mode)
+        return out
 
     @staticmethod
     def _totals(out, mode):
