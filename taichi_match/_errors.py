@@ -1,7 +1,7 @@
 """The library's own exceptions: one root, subclasses of the built-ins where natural."""
 
 __all__ = ["TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
-           "MapFileError", "MapFormatError"]
+           "MapFileError", "MapFormatError", "LogFileError", "LogFormatError"]
 
 
 class TaichiMatchError(Exception):
@@ -31,3 +31,11 @@ class MapFileError(TaichiMatchError, OSError):
 class MapFormatError(TaichiMatchError, ValueError):
     """A map file is readable but malformed (a YAML field missing or of the wrong type, a
     truncated or unsupported image)."""
+
+
+class LogFileError(TaichiMatchError, OSError):
+    """A laser log or trajectory file cannot be read."""
+
+
+class LogFormatError(TaichiMatchError, ValueError):
+    """A laser log or trajectory file is readable but malformed."""

@@ -89,7 +89,8 @@ class MatchOptions:
     """
 
     blur: float = 0.5
-    blur_kind: Literal["gaussian", "ramp"] = "gaussian"
+    blur_kind: Literal["gaussian", "ramp", "envelope"] = "gaussian"
+    blur_growth: float = 1.0
     prior_weight: Optional[float] = None
     prior_weight_per_cell: float = 8.6e-4
     rotation_scale: float = 2.0
@@ -107,6 +108,9 @@ class MatchOptions:
     engine: Literal["taichi", "numpy"] = "taichi"
 
     def __post_init__(self):
+        _check_number("blur_growth", self.blur_growth, minimum=1.0)
+        if self.blur_growth > 16.0:
+            raise InvalidOptionError(f"blur_growth must be at most 16; got {self.blur_growth!r}")
         for name in ("blur", "prior_weight_per_cell", "gtol", "covariance_scale"):
             _check_number(name, getattr(self, name), minimum=0.0)
         if self.xtol is not None:
@@ -261,12 +265,14 @@ class Matcher:
         self._cache = weakref.WeakKeyDictionary()      # GridMap -> {(blur, kind): PreparedMap}
         self._lock = threading.Lock()
 
-    def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None) -> PreparedMap:
+    def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None,
+                blur_growth: Optional[float] = None) -> PreparedMap:
         """Blur ``grid`` once (cached per blur for as long as the map lives)."""
         if not isinstance(grid, GridMap):
             raise InvalidMapError(f"expected a GridMap; got {type(grid).__name__}")
         key = (self.options.blur if blur is None else float(blur),
-               self.options.blur_kind if blur_kind is None else blur_kind)
+               self.options.blur_kind if blur_kind is None else blur_kind,
+               self.options.blur_growth if blur_growth is None else float(blur_growth))
         with self._lock:
             per_map = self._cache.setdefault(grid, {})
             prepared = per_map.get(key)
@@ -282,8 +288,8 @@ class Matcher:
         opts = _with(self.options, overrides)
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
-        prep_a = self.prepare(a, opts.blur, opts.blur_kind)
-        prep_b = self.prepare(b, opts.blur, opts.blur_kind)
+        prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth)
+        prep_b = self.prepare(b, opts.blur, opts.blur_kind, opts.blur_growth)
         counter = _Counter()
         full_weight = opts.weight(prep_b.n_known)
         if opts.method == "bfgs":

@@ -1,15 +1,17 @@
 """Maps prepared once for matching: blurred (sec. 3.2) and laid out for the engines.
 
-A prepared map can play either role: as A it is a float32 grid padded with a ring of unknown
-cells (``_kernels.PAD`` wide); as B it is a float32 grid plus the list of rows holding known cells and, per row, the
-column range that holds them, so the kernels skip unknown rows and margins. Unknown is -1.
+A prepared map can play either role: as A it is the interval [lo, hi] of occupancies per cell
+(``_blur.occupancy_interval``; lo = hi = the blurred map except for the "envelope" blur), a
+float32 (rows, cols, 2) grid padded with a ring of unknown cells (``_kernels.PAD`` wide); as B it
+is the float32 grid of lo plus the list of rows holding known cells and, per row, the column range
+that holds them, so the kernels skip unknown rows and margins. Unknown is -1.
 """
 
 import weakref
 
 import numpy as np
 
-from ._blur import blur
+from ._blur import occupancy_interval
 from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
 from ._grid import GridMap
@@ -31,18 +33,22 @@ STENCIL_KERNEL_MIN_CELLS = 50_000
 class PreparedMap:
     """``grid`` blurred (``blur_kind``, ``blur_width`` metres), with engine-ready arrays."""
 
-    def __init__(self, grid: GridMap, blur_width: float, blur_kind: str = "gaussian"):
+    def __init__(self, grid: GridMap, blur_width: float, blur_kind: str = "gaussian", blur_growth: float = 1.0):
         # Only a weak reference to the source map: the matcher caches prepared maps in a
         # WeakKeyDictionary keyed by that map, and a strong one would keep both alive forever.
         self._grid = weakref.ref(grid)
         self.resolution = grid.resolution
         self.blur_width = float(blur_width)
         self.blur_kind = blur_kind
-        blurred = blur(grid, blur_width, kind=blur_kind)
-        self.blurred = blurred if blurred is not grid else grid.with_prob(grid.prob)
-        values = np.where(np.isnan(self.blurred.prob), _UNKNOWN, self.blurred.prob).astype(np.float32)
-        self.padded = np.ascontiguousarray(np.pad(values, PAD, constant_values=_UNKNOWN))   # role A
-        self.values = np.ascontiguousarray(values)                         # role B
+        self.blur_growth = float(blur_growth)
+        lo, hi = occupancy_interval(grid, blur_width, kind=blur_kind)
+        self.lower = grid.with_prob(lo)                                    # role B, and A's lower end
+        self.blurred = grid.with_prob(hi)                                  # A's upper end
+        interval = np.stack([lo, hi], axis=-1)
+        interval = np.where(np.isnan(interval), _UNKNOWN, interval).astype(np.float32)
+        self.padded = np.ascontiguousarray(np.pad(interval, ((PAD, PAD), (PAD, PAD), (0, 0)),
+                                                  constant_values=_UNKNOWN))              # role A
+        self.values = np.ascontiguousarray(interval[..., 0])                # role B
         known = grid.known
         rows = np.flatnonzero(known.any(axis=1))
         first = known[rows].argmax(axis=1)
@@ -67,10 +73,13 @@ class PreparedMap:
         return grid
 
     def coarser(self):
-        """The next level of the pyramid: the map with cells twice as large, blurred alike (cached)."""
+        """The next level of the pyramid: the map with cells twice as large (max-reduced for the
+        "envelope" blur, which keeps one-cell walls), blurred ``blur_growth`` times wider (cached)."""
         if self._coarser is None:
-            self._coarser_grid = coarsen(self.grid)            # owned here: the level holds it weakly
-            self._coarser = PreparedMap(self._coarser_grid, self.blur_width, self.blur_kind)
+            reduce = "max" if self.blur_kind == "envelope" else "mean"
+            self._coarser_grid = coarsen(self.grid, reduce=reduce)   # owned here: the level holds it weakly
+            self._coarser = PreparedMap(self._coarser_grid, self.blur_width * self.blur_growth, self.blur_kind,
+                                        self.blur_growth)
         return self._coarser
 
     def level(self, k):
@@ -105,14 +114,14 @@ class Engine:
         self._resolution_a = a.resolution
         # the stencil kernel needs A's grid axes along its frame's axes (whole-cell shifts)
         self._stencil_kernel = a.blurred.corner_pose[2] == 0.0 and b.n_known >= STENCIL_KERNEL_MIN_CELLS
-        self._a_grid, self._b_grid = a.blurred, b.blurred
+        self._a_grid, self._a_upper, self._b_grid = a.lower, a.blurred, b.lower
         self._bilinear_oracle = None
         if name == "taichi":
             self._kernel = TaichiEngine(a.padded, b.values, b.rows)
             self._affine = AffineMap(a.blurred, b.blurred)
             self._rows_i = b.rows[:, 0].astype(np.float64)
         else:
-            self._oracle = NumpyDiscrepancy(a.blurred, b.blurred)
+            self._oracle = NumpyDiscrepancy(a.lower, b.lower, a.blurred)
 
     def __call__(self, poses, count="all"):
         if self.name == "taichi":
@@ -134,7 +143,7 @@ class Engine:
         poses = np.asarray(poses, dtype=np.float64)
         if self.name != "taichi":
             if self._bilinear_oracle is None:
-                self._bilinear_oracle = NumpyBilinear(self._a_grid, self._b_grid)
+                self._bilinear_oracle = NumpyBilinear(self._a_grid, self._b_grid, self._a_upper)
             return self._bilinear_oracle(poses)
         e, counts, sums = self._kernel.bilinear(self._affine(poses))
         # u = c0 j + c1 i + c2, v = c3 j + c4 i + c5: d/dq sum = dc0 S(g_u j) + dc1 S(g_u i) + ...
