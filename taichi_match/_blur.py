@@ -19,19 +19,14 @@ It keeps walls at full strength and gives e a constant slope out to ``width``, b
 occupied cell becomes a full-height cone ``width`` wide, so on noisy maps the discrepancy floor
 rises until moving the maps apart (zero overlap) is cheaper than aligning them.
 
-``"envelope"``: map A becomes an interval of occupancies per cell (see ``occupancy_interval``):
-from its own occupancy p(c) (the lower end) up to a Gaussian envelope of its occupied cells (the
-upper end)::
+``"envelope"``: the Gaussian envelope of the occupied cells (p >= ``occupied``)::
 
-    lo(c) = p(c),    hi(c) = max(p(c), p(o) * exp(-d(c, o)^2 / (2 width^2)))
+    hi(c) = max(p(c), p(o) * exp(-d(c, o)^2 / (2 width^2)))
 
-with o the nearest occupied cell (p >= ``occupied``). A cell of B then costs its distance to
-A's interval, ``max(p_B - hi_A, 0) + max(lo_A - p_B, 0)``: an occupied cell of B pays for how
-far it lies from A's walls (smoothly, within ``width``), a free cell of B pays for landing on
-occupied cells of A (sharply), and nothing is paid for a grey halo that one map has around a wall
-the other map never saw. With lo = hi (the other kinds) the cost is the paper's |p_A - p_B|.
-A one-cell laser wall keeps full strength (a normalised Gaussian dilutes it to 1 / (2.5 sigma)
-and leaves e lower away from the truth; measured on laser-built submaps in bench/TUNING.md).
+with o the nearest occupied cell: 1 on a wall, falling smoothly to 0 within a few ``width``.
+A one-cell laser wall keeps full strength, where a normalised Gaussian dilutes it to
+1 / (2.5 sigma) and leaves e lower away from the truth (measured on laser-built submaps in
+bench/TUNING.md). It serves the envelope discrepancy (``_envelope``), not |p_A - p_B|.
 
 The measurements behind the default are in ``bench/TUNING.md``.
 """
@@ -80,9 +75,8 @@ def _convolve_same(x, taps, axis):
 
 def occupancy_interval(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "envelope"] = "gaussian",
                        occupied: float = 0.5):
-    """(lo, hi) float64 arrays of ``grid``'s shape: the occupancies each cell of ``grid`` is
-    compatible with when it plays map A (NaN unknown). lo = hi = the blurred map for "gaussian"
-    and "ramp"; for "envelope", lo is the map itself and hi its envelope (module docstring)."""
+    """(map as compared, blurred map) float64 arrays (NaN unknown): the blurred map twice for
+    "gaussian" and "ramp"; for "envelope", the map itself and its envelope."""
     if kind == "envelope":
         return grid.prob, blur(grid, width, kind=kind, occupied=occupied).prob
     blurred = blur(grid, width, kind=kind, occupied=occupied).prob
@@ -91,8 +85,7 @@ def occupancy_interval(grid: GridMap, width: float, *, kind: Literal["gaussian",
 
 def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "envelope"] = "gaussian",
          occupied: float = 0.5) -> GridMap:
-    """Return ``grid`` blurred with ``width`` metres (see the module docstring; for "envelope",
-    the upper end of the interval); unknown stays NaN."""
+    """Return ``grid`` blurred with ``width`` metres (see the module docstring); unknown stays NaN."""
     width = float(width)
     if not np.isfinite(width) or width < 0.0:
         raise InvalidOptionError(f"blur width must be a finite number of metres >= 0; got {width}")

@@ -32,32 +32,47 @@ def affine_coefficients(poses, a: GridMap, b: GridMap, pad=PAD):
 
 
 class AffineMap:
-    """``affine_coefficients`` for one pair of maps, with the pair's constants computed once."""
+    """``affine_coefficients`` for one pair of maps, with the pair's constants computed once.
+
+    The coefficients are linear in (cos theta, sin theta, x, y, 1), so a batch is one product with
+    a 5 x 6 matrix (a few NumPy calls instead of thirty: this runs before every launch).
+    """
 
     def __init__(self, a: GridMap, b: GridMap, pad=PAD):
-        self._b_corner = b.corner_pose
+        bx, by, b_yaw = b.corner_pose
         ax, ay, a_yaw = a.corner_pose
-        self._a_corner = np.array([ax, ay])
-        self._ratio = b.resolution / a.resolution
-        self._cd, self._sd = np.cos(b.corner_pose[2] - a_yaw), np.sin(b.corner_pose[2] - a_yaw)
-        self._ca, self._sa = np.cos(a_yaw) / a.resolution, np.sin(a_yaw) / a.resolution
-        self._pad = pad
+        ratio = b.resolution / a.resolution
+        cd, sd = np.cos(b_yaw - a_yaw), np.sin(b_yaw - a_yaw)
+        ca, sa = np.cos(a_yaw) / a.resolution, np.sin(a_yaw) / a.resolution
+
+        def coefficients(c, s, x, y, one):
+            m00 = (c * cd - s * sd) * ratio       # B's grid axes in A's grid: theta + yaw_B - yaw_A
+            m10 = (s * cd + c * sd) * ratio
+            cx = c * bx - s * by + x - ax * one   # B's corner in A's frame, in A's grid
+            cy = s * bx + c * by + y - ay * one
+            u0 = ca * cx + sa * cy + pad * one
+            v0 = ca * cy - sa * cx + pad * one
+            # cell centres: + 1/2 cell along both of B's axes
+            return [m00, -m10, u0 + 0.5 * (m00 - m10), m10, m00, v0 + 0.5 * (m10 + m00)]
+
+        self._matrix = np.array([coefficients(*row) for row in np.eye(5)])      # (5, 6)
 
     def __call__(self, poses):
-        poses = np.asarray(poses, dtype=np.float64)
-        c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-        bx, by, _ = self._b_corner
-        m00 = (c * self._cd - s * self._sd) * self._ratio   # B's grid axes in A's grid: theta + yaw_B - yaw_A
-        m10 = (s * self._cd + c * self._sd) * self._ratio
-        cx = c * bx - s * by + (poses[:, 0] - self._a_corner[0])   # B's corner in A's frame, in A's grid
-        cy = s * bx + c * by + (poses[:, 1] - self._a_corner[1])
-        u0 = self._ca * cx + self._sa * cy + self._pad
-        v0 = self._ca * cy - self._sa * cx + self._pad
-        out = np.empty((len(poses), 6))
-        out[:, 0], out[:, 1], out[:, 3], out[:, 4] = m00, -m10, m10, m00
-        out[:, 2] = u0 + 0.5 * (m00 - m10)             # cell centres: + 1/2 cell along both of B's axes
-        out[:, 5] = v0 + 0.5 * (m10 + m00)
-        return out
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        return self.from_features(pose_features(poses))
+
+    def from_features(self, features):
+        """The coefficients from ``pose_features`` (N, 5)."""
+        return features @ self._matrix
+
+
+def pose_features(poses, inverse=False):
+    """(N, 5) rows (cos theta, sin theta, x, y, 1) of the poses r (N, 3), or of r^-1."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    x, y = poses[:, 0], poses[:, 1]
+    if inverse:                                  # r^-1 = (-R^T t, -theta)
+        return np.column_stack([c, -s, -(c * x + s * y), s * x - c * y, np.ones(len(poses))])
+    return np.column_stack([c, s, x, y, np.ones(len(poses))])
 
 
 # ---------------------------------------------------------------------------------------------

@@ -9,12 +9,8 @@ also sums what the analytic gradient needs.
 
 The kernels know nothing but arrays:
 
-- ``a``: map A padded with a ring of ``PAD`` unknown cells, float32 (rows, cols, 2): per cell the
-  interval [lo, hi] of occupancies it is compatible with (lo = hi = p_A but for the "envelope"
-  blur), unknown = -1. A cell of B adds its distance to the interval,
-  ``max(p_B - hi, 0) + max(lo - p_B, 0)``, which is |p_A - p_B| when lo = hi. The two ends sit
-  side by side, so one cache line serves both. Lookups are clamped into the padded grid, so the
-  inner loops need no bounds branch.
+- ``a``: map A padded with a ring of ``PAD`` unknown cells, float32, unknown = -1. Lookups are
+  clamped into the padded grid, so the inner loops need no bounds branch.
 - ``b``: map B, float32, unknown = -1; ``rows``: (R, 3) int32, for each row of B holding known
   cells its index i and the column range [lo, hi) that holds them.
 - ``affine``: (N, 6) float64, per pose the map from B's cell indices to A's padded cell
@@ -139,14 +135,6 @@ COUNT_MODES = {"none": 0, "first": 1, "all": 2}   # which poses of a batch get a
 
 def _build_kernel(ti):
     f32_2d = ti.types.ndarray(dtype=ti.f32, ndim=2)
-    f32_3d = ti.types.ndarray(dtype=ti.f32, ndim=3)
-
-    @ti.func
-    def distance(a: ti.template(), iv, iu, pb):
-        """(B's cell is compared: A's cell and B's known, its distance to A's interval)"""
-        lo = a[iv, iu, 0]
-        hi = a[iv, iu, 1]
-        return (lo >= 0.0) & (pb >= 0.0), ti.max(pb - hi, 0.0) + ti.max(lo - pb, 0.0)
 
     @ti.func
     def row_start(affine: ti.template(), k, i):
@@ -163,14 +151,16 @@ def _build_kernel(ti):
             # unknown cells, so truncation toward zero is as good as floor here
             iu = ti.min(ti.max(ti.cast(u0 + du * j, ti.i32), 0), u_max)
             iv = ti.min(ti.max(ti.cast(v0 + dv * j, ti.i32), 0), v_max)
-            ok, d = distance(a, iv, iu, b[i, j])
-            acc += ti.select(ok, d, 0.0)
+            pa = a[iv, iu]
+            pb = b[i, j]
+            ok = (pa >= 0.0) & (pb >= 0.0)
+            acc += ti.select(ok, ti.abs(pa - pb), 0.0)
             if ti.static(count):
                 cnt += ti.select(ok, 1, 0)
         return acc, cnt
 
     @ti.kernel
-    def discrepancy_rows(a: f32_3d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    def discrepancy_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
                          affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
                          out: ti.types.ndarray(dtype=ti.f32, ndim=3), count_mode: ti.template()):
         u_max = a.shape[1] - 1
@@ -219,8 +209,9 @@ def _build_kernel(ti):
             iv = ti.min(ti.max(ti.cast(v0 + dv * j, ti.i32), 2), v_max - 2)
             pb = b[i, j]
             for m in ti.static(range(len(group))):
-                ok, d = distance(a, iv + group[m][1][1], iu + group[m][1][0], pb)
-                acc[m] += ti.select(ok, d, 0.0)
+                pa = a[iv + group[m][1][1], iu + group[m][1][0]]
+                ok = (pa >= 0.0) & (pb >= 0.0)
+                acc[m] += ti.select(ok, ti.abs(pa - pb), 0.0)
                 if ti.static(count and m == 0 and group[0][0] == 0):
                     cnt += ti.select(ok, 1, 0)
         for m in ti.static(range(len(group))):
@@ -229,7 +220,7 @@ def _build_kernel(ti):
             out[1, 0, r] = ti.f32(cnt)
 
     @ti.kernel
-    def hessian_stencil_rows(a: f32_3d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    def hessian_stencil_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
                              affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
                              out: ti.types.ndarray(dtype=ti.f32, ndim=3), count_mode: ti.template()):
         # affine: (5, 6), the poses (x, y, theta + k * eps_theta), k = -2..2
@@ -252,24 +243,13 @@ def _build_kernel(ti):
             else:
                 group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[4], False)
 
-    @ti.func
-    def interpolate(a: ti.template(), iv, iu, tu, tv, end: ti.template()):
-        """A's interval end ``end`` bilinear at (iv + tv, iu + tu): value, d/du, d/dv"""
-        a00 = a[iv, iu, end]
-        a01 = a[iv, iu + 1, end]
-        a10 = a[iv + 1, iu, end]
-        a11 = a[iv + 1, iu + 1, end]
-        value = (a00 * (1.0 - tu) + a01 * tu) * (1.0 - tv) + (a10 * (1.0 - tu) + a11 * tu) * tv
-        return value, (1.0 - tv) * (a01 - a00) + tv * (a11 - a10), (1.0 - tu) * (a10 - a00) + tu * (a11 - a01)
-
     @ti.kernel
-    def bilinear_rows(a: f32_3d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    def bilinear_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
                       affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
                       out: ti.types.ndarray(dtype=ti.f32, ndim=3)):
-        # A's interval interpolated bilinearly between its cell centres; per (pose, row): e, the
-        # overlap, and sums of de/du, (de/du) j, de/dv, (de/dv) j (de/du = -dhi/du where p_B > hi,
-        # dlo/du where lo > p_B), from which the caller forms the gradient with the affine map's
-        # derivatives (the chain rule per row)
+        # A interpolated bilinearly between its cell centres; per (pose, row): e, the overlap, and
+        # sums of sign(p_A - p_B) times dp_A/du, (dp_A/du) j, dp_A/dv, (dp_A/dv) j, from which the
+        # caller forms the gradient with the affine map's derivatives (the chain rule per row)
         u_max = a.shape[1] - 2
         v_max = a.shape[0] - 2
         for k, r in ti.ndrange(affine.shape[0], rows.shape[0]):
@@ -285,17 +265,18 @@ def _build_kernel(ti):
                 iv = ti.cast(fv, ti.i32)
                 tu = fu - iu
                 tv = fv - iv
+                a00 = a[iv, iu]
+                a01 = a[iv, iu + 1]
+                a10 = a[iv + 1, iu]
+                a11 = a[iv + 1, iu + 1]
                 pb = b[i, j]
-                ok = (a[iv, iu, 0] >= 0.0) & (a[iv, iu + 1, 0] >= 0.0) & (a[iv + 1, iu, 0] >= 0.0) \
-                    & (a[iv + 1, iu + 1, 0] >= 0.0) & (pb >= 0.0)
-                lo, lo_u, lo_v = interpolate(a, iv, iu, tu, tv, 0)
-                hi, hi_u, hi_v = interpolate(a, iv, iu, tu, tv, 1)
-                above = ti.select(ok & (pb > hi), 1.0, 0.0)
-                below = ti.select(ok & (lo > pb), 1.0, 0.0)
-                g_u = below * lo_u - above * hi_u
-                g_v = below * lo_v - above * hi_v
-                d = ti.max(pb - hi, 0.0) + ti.max(lo - pb, 0.0)
-                acc += ti.Vector([ti.select(ok, d, 0.0), ti.select(ok, 1.0, 0.0),
+                ok = (a00 >= 0.0) & (a01 >= 0.0) & (a10 >= 0.0) & (a11 >= 0.0) & (pb >= 0.0)
+                value = (a00 * (1.0 - tu) + a01 * tu) * (1.0 - tv) + (a10 * (1.0 - tu) + a11 * tu) * tv
+                d = value - pb
+                s = ti.select(ok, ti.select(d > 0.0, 1.0, ti.select(d < 0.0, -1.0, 0.0)), 0.0)
+                g_u = s * ((1.0 - tv) * (a01 - a00) + tv * (a11 - a10))
+                g_v = s * ((1.0 - tu) * (a10 - a00) + tu * (a11 - a01))
+                acc += ti.Vector([ti.select(ok, ti.abs(d), 0.0), ti.select(ok, 1.0, 0.0),
                                   g_u, g_u * j, g_v, g_v * j], dt=ti.f32)
             for m in ti.static(range(6)):
                 out[m, k, r] = acc[m]

@@ -43,6 +43,9 @@ ENTRY_RADIUS_CELLS_FINEST = 1.0   # the given maps
 XTOL_DEFAULT = {"newton": 0.25, "bfgs": 0.05}
 OPTIMIZERS = tuple(XTOL_DEFAULT)
 INTERPOLATIONS = ("nearest", "bilinear")
+EVIDENCE = ("trinary", "probability")
+# MatchOptions.paper(): the fields that differ from the defaults
+PAPER_OPTIONS = dict(blur_kind="gaussian", blur=0.5, blur_growth=1.0, unknown_cost=0.0, evidence="probability")
 
 
 @dataclass(frozen=True)
@@ -88,9 +91,11 @@ class MatchOptions:
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
     """
 
-    blur: float = 0.5
-    blur_kind: Literal["gaussian", "ramp", "envelope"] = "gaussian"
-    blur_growth: float = 1.0
+    blur: float = 0.1
+    blur_kind: Literal["gaussian", "ramp", "envelope"] = "envelope"
+    blur_growth: float = 2.0
+    unknown_cost: float = 0.3
+    evidence: Literal["trinary", "probability"] = "trinary"
     prior_weight: Optional[float] = None
     prior_weight_per_cell: float = 8.6e-4
     rotation_scale: float = 2.0
@@ -109,6 +114,9 @@ class MatchOptions:
 
     def __post_init__(self):
         _check_number("blur_growth", self.blur_growth, minimum=1.0)
+        _check_number("unknown_cost", self.unknown_cost, minimum=0.0)
+        if self.unknown_cost > 1.0:
+            raise InvalidOptionError(f"unknown_cost must be in [0, 1]; got {self.unknown_cost!r}")
         if self.blur_growth > 16.0:
             raise InvalidOptionError(f"blur_growth must be at most 16; got {self.blur_growth!r}")
         for name in ("blur", "prior_weight_per_cell", "gtol", "covariance_scale"):
@@ -129,14 +137,28 @@ class MatchOptions:
         if isinstance(self.refine_iterations, bool) or not isinstance(self.refine_iterations, (int, np.integer)) \
                 or self.refine_iterations < 0:
             raise InvalidOptionError(f"refine_iterations must be an integer >= 0; got {self.refine_iterations!r}")
+        if self.evidence not in EVIDENCE:
+            raise InvalidOptionError(f"evidence must be one of {EVIDENCE}; got {self.evidence!r}")
         if self.blur_kind not in BLUR_KINDS:
             raise InvalidOptionError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
         if self.interpolation not in INTERPOLATIONS:
             raise InvalidOptionError(f"interpolation must be one of {INTERPOLATIONS}; got {self.interpolation!r}")
+        if self.interpolation == "bilinear" and self.blur_kind == "envelope":
+            raise InvalidOptionError('interpolation="bilinear" interpolates the paper\'s |p_A - p_B|: use it with '
+                                     'blur_kind="gaussian" or "ramp" (for instance MatchOptions.paper(interpolation='
+                                     '"bilinear")), not the "envelope" discrepancy')
         if self.optimizer is not None and self.optimizer not in OPTIMIZERS:
             raise InvalidOptionError(f"optimizer must be one of {OPTIMIZERS} or None; got {self.optimizer!r}")
         if self.engine not in ENGINES:
             raise InvalidOptionError(f"engine must be one of {ENGINES}; got {self.engine!r}")
+
+    @classmethod
+    def paper(cls, **overrides) -> "MatchOptions":
+        """The paper's discrepancy, |p_A - p_B| over B's known cells (eq. 6), on maps blurred by a
+        0.5 m normalised Gaussian, grey probabilities as given, unknown cells not compared: the
+        default before laser-built maps showed its limits (bench/TUNING.md). ``overrides`` are
+        further fields."""
+        return cls(**{**PAPER_OPTIONS, **overrides})
 
     @property
     def step_tolerance(self):
@@ -266,13 +288,14 @@ class Matcher:
         self._lock = threading.Lock()
 
     def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None,
-                blur_growth: Optional[float] = None) -> PreparedMap:
+                blur_growth: Optional[float] = None, evidence: Optional[str] = None) -> PreparedMap:
         """Blur ``grid`` once (cached per blur for as long as the map lives)."""
         if not isinstance(grid, GridMap):
             raise InvalidMapError(f"expected a GridMap; got {type(grid).__name__}")
         key = (self.options.blur if blur is None else float(blur),
                self.options.blur_kind if blur_kind is None else blur_kind,
-               self.options.blur_growth if blur_growth is None else float(blur_growth))
+               self.options.blur_growth if blur_growth is None else float(blur_growth),
+               self.options.evidence if evidence is None else evidence)
         with self._lock:
             per_map = self._cache.setdefault(grid, {})
             prepared = per_map.get(key)
@@ -288,8 +311,8 @@ class Matcher:
         opts = _with(self.options, overrides)
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
-        prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth)
-        prep_b = self.prepare(b, opts.blur, opts.blur_kind, opts.blur_growth)
+        prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence)
+        prep_b = self.prepare(b, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence)
         counter = _Counter()
         full_weight = opts.weight(prep_b.n_known)
         if opts.method == "bfgs":
@@ -321,8 +344,9 @@ class Matcher:
             cost = _LevelCost(prep_a.level(level), prep_b.level(level), prep_b, opts, r0, full_weight, counter)
             eps = cost.steps[0]
             # the overlap is needed at the start (is there any?) and at the end (the result's)
-            evaluate = functools.partial(cost.value_gradient_hessian, count="first" if level == 0 else "none")
-            first = cost.value_gradient_hessian(r * cost.scale, count="first" if level in (0, top) else "none")
+            count = "first" if level == 0 and cost.counts_free else "none"
+            evaluate = functools.partial(cost.value_gradient_hessian, count=count)
+            first = cost.value_gradient_hessian(r * cost.scale, count="first" if level == top else count)
             if level == top and first[3][1] == 0:
                 return r0, Status.NO_OVERLAP, 0, first[0], 0.0, 0, np.zeros((3, 3))
             if level == top:
@@ -337,6 +361,8 @@ class Matcher:
             if level == top:          # the finer levels refine within a fixed budget of launches
                 status = res.status
         e, overlap, information = res.extra
+        if overlap is None:
+            overlap = cost.overlap(r)
         return r, status, nit, res.fun, e, overlap, information
 
     @staticmethod
@@ -391,7 +417,7 @@ class _LevelCost:
     """
 
     def __init__(self, pa, pb, prep_b, opts, r0, full_weight, counter):
-        self._engine = make_engine(opts.engine, pa, pb)
+        self._engine = make_engine(opts.engine, pa, pb, opts.unknown_cost)
         self._bilinear = opts.interpolation == "bilinear"
         self._counter = counter
         self._r0 = r0
@@ -401,13 +427,23 @@ class _LevelCost:
         self.scale = np.array([1.0, 1.0, prep_b.radius])
         self.max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * self.steps[0])
 
-    def _count(self, poses):
-        self._counter.launches += 1
+    @property
+    def counts_free(self):
+        """Whether the engine counts the overlap in the same launch as e."""
+        return self._engine.counts_free
+
+    def _count(self, poses, count="none"):
+        self._counter.launches += 1 if count == "none" or self.counts_free else 2
         self._counter.poses += poses
+
+    def overlap(self, r):
+        """The overlap at r (one launch)."""
+        self._count(1)
+        return int(self._engine.overlap(np.asarray(r, dtype=np.float64)[None, :])[0])
 
     def evaluate(self, poses, count="first"):
         """e and the overlap (see ``make_engine`` for ``count``) for a batch of poses: one launch."""
-        self._count(len(poses))
+        self._count(len(poses), count)
         if self._bilinear:
             return self._engine.bilinear(poses)[:2]
         return self._engine(poses, count)
@@ -436,7 +472,7 @@ class _LevelCost:
             hess = (grads[1:4] - grads[4:7]).T / (2.0 * self.steps)      # column q: d grad / d r_q
             hess = 0.5 * (hess + hess.T)
         else:
-            self._count(25)
+            self._count(25, count)
             values, counts = self._engine.hessian_stencil(r, self.steps, count)
             grad, hess = gradient_from_stencil(values, self.steps), hessian_from_stencil(values, self.steps)
         p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)

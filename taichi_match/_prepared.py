@@ -1,10 +1,10 @@
 """Maps prepared once for matching: blurred (sec. 3.2) and laid out for the engines.
 
-A prepared map can play either role: as A it is the interval [lo, hi] of occupancies per cell
-(``_blur.occupancy_interval``; lo = hi = the blurred map except for the "envelope" blur), a
-float32 (rows, cols, 2) grid padded with a ring of unknown cells (``_kernels.PAD`` wide); as B it
-is the float32 grid of lo plus the list of rows holding known cells and, per row, the column range
-that holds them, so the kernels skip unknown rows and margins. Unknown is -1.
+A prepared map can play either role: as A it is a float32 grid padded with a ring of unknown
+cells (``_kernels.PAD`` wide); as B it is a float32 grid plus the list of rows holding known cells
+and, per row, the column range that holds them, so the kernels skip unknown rows and margins.
+Unknown is -1. With the "envelope" blur it holds instead the conflict grid and the occupied cells
+that the envelope discrepancy (``_envelope``) uses, in either role.
 """
 
 import weakref
@@ -14,9 +14,10 @@ import numpy as np
 from ._blur import occupancy_interval
 from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
-from ._grid import GridMap
+from ._grid import GridMap, trinary
 from ._kernels import PAD, TaichiEngine
 from ._pyramid import coarsen
+from ._envelope import EnvelopeEngine, NumpyEnvelope, conflict_grid, wall_points
 from ._reference import NumpyBilinear, NumpyDiscrepancy
 
 __all__ = ["PreparedMap", "make_engine", "ENGINES"]
@@ -33,22 +34,30 @@ STENCIL_KERNEL_MIN_CELLS = 50_000
 class PreparedMap:
     """``grid`` blurred (``blur_kind``, ``blur_width`` metres), with engine-ready arrays."""
 
-    def __init__(self, grid: GridMap, blur_width: float, blur_kind: str = "gaussian", blur_growth: float = 1.0):
+    def __init__(self, grid: GridMap, blur_width: float, blur_kind: str = "gaussian", blur_growth: float = 1.0,
+                 evidence: str = "probability"):
         # Only a weak reference to the source map: the matcher caches prepared maps in a
         # WeakKeyDictionary keyed by that map, and a strong one would keep both alive forever.
         self._grid = weakref.ref(grid)
+        self._converted = None
+        if evidence == "trinary":               # the map as map_saver would write it (``trinary``)
+            grid = self._converted = trinary(grid)
+        elif evidence != "probability":
+            raise InvalidOptionError(f"evidence must be 'trinary' or 'probability'; got {evidence!r}")
         self.resolution = grid.resolution
         self.blur_width = float(blur_width)
         self.blur_kind = blur_kind
         self.blur_growth = float(blur_growth)
         lo, hi = occupancy_interval(grid, blur_width, kind=blur_kind)
-        self.lower = grid.with_prob(lo)                                    # role B, and A's lower end
-        self.blurred = grid.with_prob(hi)                                  # A's upper end
-        interval = np.stack([lo, hi], axis=-1)
-        interval = np.where(np.isnan(interval), _UNKNOWN, interval).astype(np.float32)
-        self.padded = np.ascontiguousarray(np.pad(interval, ((PAD, PAD), (PAD, PAD), (0, 0)),
-                                                  constant_values=_UNKNOWN))              # role A
-        self.values = np.ascontiguousarray(interval[..., 0])                # role B
+        self.lower = grid.with_prob(lo)         # the map as compared (blurred but for "envelope")
+        self.blurred = grid.with_prob(hi)       # the blurred map ("envelope": its envelope hi)
+        # the paper's |p_A - p_B| (``_kernels``); for "envelope" on the map itself, to count the overlap
+        values = np.where(np.isnan(lo), _UNKNOWN, lo).astype(np.float32)
+        self.padded = np.ascontiguousarray(np.pad(values, PAD, constant_values=_UNKNOWN))   # role A
+        self.values = np.ascontiguousarray(values)                                          # role B
+        if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
+            self.conflict = conflict_grid(self.blurred)
+            self.walls = wall_points(grid)
         known = grid.known
         rows = np.flatnonzero(known.any(axis=1))
         first = known[rows].argmax(axis=1)
@@ -66,17 +75,23 @@ class PreparedMap:
 
     @property
     def grid(self) -> GridMap:
-        """The map this was prepared from (alive for as long as its owner keeps it)."""
+        """The map this was prepared from (alive for as long as its owner keeps it), after the
+        evidence conversion."""
+        if self._converted is not None:
+            if self._grid() is None:
+                raise ReferenceError("the map this PreparedMap was made from no longer exists")
+            return self._converted
         grid = self._grid()
         if grid is None:
             raise ReferenceError("the map this PreparedMap was made from no longer exists")
         return grid
 
     def coarser(self):
-        """The next level of the pyramid: the map with cells twice as large (max-reduced for the
-        "envelope" blur, which keeps one-cell walls), blurred ``blur_growth`` times wider (cached)."""
+        """The next level of the pyramid: the map with cells twice as large, blurred ``blur_growth``
+        times wider (cached); for the "envelope" blur reduced so that a one-cell wall stays a wall
+        while a lone occupied cell fades (``_pyramid.coarsen``, reduce "line")."""
         if self._coarser is None:
-            reduce = "max" if self.blur_kind == "envelope" else "mean"
+            reduce = "line" if self.blur_kind == "envelope" else "mean"
             self._coarser_grid = coarsen(self.grid, reduce=reduce)   # owned here: the level holds it weakly
             self._coarser = PreparedMap(self._coarser_grid, self.blur_width * self.blur_growth, self.blur_kind,
                                         self.blur_growth)
@@ -93,15 +108,61 @@ class PreparedMap:
         return f"PreparedMap({self._grid()!r}, blur {self.blur_kind} {self.blur_width} m)"
 
 
-def make_engine(name, a: PreparedMap, b: PreparedMap):
-    """An ``Engine`` evaluating eq. (6) of B in A with the named engine."""
+def make_engine(name, a: PreparedMap, b: PreparedMap, unknown_cost: float = 0.0):
+    """An engine evaluating the discrepancy of B in A with the named engine: eq. (6), or for maps
+    prepared with the "envelope" blur the envelope discrepancy (``_envelope``)."""
     if name not in ENGINES:
         raise InvalidOptionError(f"engine must be one of {ENGINES}; got {name!r}")
+    if (a.blur_kind == "envelope") != (b.blur_kind == "envelope"):
+        raise InvalidOptionError("both maps must be prepared with the same kind of blur")
+    if a.blur_kind == "envelope":
+        return EnvelopeDiscrepancy(name, a, b, unknown_cost)
     return Engine(name, a, b)
 
 
+class EnvelopeDiscrepancy:
+    """The envelope discrepancy with the engines' interface (``Engine``); no bilinear option.
+
+    The overlap (known cells of B on known cells of A, as for eq. 6) takes a second launch of the
+    dense kernel on the maps themselves, for the poses ``count`` asks for.
+    """
+
+    counts_free = False          # counting the overlap costs a launch of its own
+
+    def __init__(self, name, a: PreparedMap, b: PreparedMap, unknown_cost):
+        self.name = name
+        if name == "taichi":
+            self._evaluate = EnvelopeEngine(a, b, unknown_cost)
+        else:
+            self._evaluate = NumpyEnvelope(a.lower, a.blurred, b.lower, b.blurred, unknown_cost)
+        self._dense = Engine(name, a, b)
+
+    def __call__(self, poses, count="all"):
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        values = self._evaluate(poses)[0]
+        if count == "none":
+            return values, None
+        if count == "first":
+            counts = np.zeros(len(poses), dtype=np.int64)
+            counts[:1] = self._dense(poses[:1], "all")[1]
+            return values, counts
+        return values, self._dense(poses, "all")[1]
+
+    def overlap(self, poses):
+        """The overlap (N,) at each pose, one launch."""
+        return self._dense.overlap(poses)
+
+    def hessian_stencil(self, pose, steps, count="first"):
+        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps)`` (one launch)."""
+        return self(hessian_stencil(pose, steps), count)
+
+    def bilinear(self, poses):
+        raise InvalidOptionError('interpolation="bilinear" needs a dense blur ("gaussian" or "ramp"), '
+                                 'not "envelope"')
+
+
 class Engine:
-    """Eq. (6) for batches of poses of B in A, one launch per batch.
+    """Eq. (6) for batches of poses of B in A, one launch per batch (the overlap too).
 
     ``engine(poses (N, 3), count="all") -> (discrepancy (N,), overlap (N,) or None)``: ``count``
     says whose overlap (known cells of B on known cells of A) is needed: "all" poses, only the
@@ -109,24 +170,30 @@ class Engine:
     skip the counting that is not asked for.
     """
 
+    counts_free = True           # the kernel counts the overlap as it sums
+
     def __init__(self, name, a: PreparedMap, b: PreparedMap):
         self.name = name
         self._resolution_a = a.resolution
         # the stencil kernel needs A's grid axes along its frame's axes (whole-cell shifts)
-        self._stencil_kernel = a.blurred.corner_pose[2] == 0.0 and b.n_known >= STENCIL_KERNEL_MIN_CELLS
-        self._a_grid, self._a_upper, self._b_grid = a.lower, a.blurred, b.lower
+        self._stencil_kernel = a.lower.corner_pose[2] == 0.0 and b.n_known >= STENCIL_KERNEL_MIN_CELLS
+        self._a_grid, self._b_grid = a.lower, b.lower
         self._bilinear_oracle = None
         if name == "taichi":
             self._kernel = TaichiEngine(a.padded, b.values, b.rows)
-            self._affine = AffineMap(a.blurred, b.blurred)
+            self._affine = AffineMap(a.lower, b.lower)
             self._rows_i = b.rows[:, 0].astype(np.float64)
         else:
-            self._oracle = NumpyDiscrepancy(a.lower, b.lower, a.blurred)
+            self._oracle = NumpyDiscrepancy(a.lower, b.lower)
 
     def __call__(self, poses, count="all"):
         if self.name == "taichi":
             return self._kernel(self._affine(poses), count)
         return self._oracle(poses)
+
+    def overlap(self, poses):
+        """The overlap (N,) at each pose, one launch."""
+        return self(poses, "all")[1]
 
     def hessian_stencil(self, pose, steps, count="first"):
         """e at the 25 poses of ``_cost.hessian_stencil(pose, steps)``, in its order (one launch);
@@ -143,7 +210,7 @@ class Engine:
         poses = np.asarray(poses, dtype=np.float64)
         if self.name != "taichi":
             if self._bilinear_oracle is None:
-                self._bilinear_oracle = NumpyBilinear(self._a_grid, self._b_grid, self._a_upper)
+                self._bilinear_oracle = NumpyBilinear(self._a_grid, self._b_grid)
             return self._bilinear_oracle(poses)
         e, counts, sums = self._kernel.bilinear(self._affine(poses))
         # u = c0 j + c1 i + c2, v = c3 j + c4 i + c5: d/dq sum = dc0 S(g_u j) + dc1 S(g_u i) + ...

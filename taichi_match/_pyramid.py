@@ -23,6 +23,8 @@ def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max"] = "me
     known = (~np.isnan(blocks)).sum(axis=(1, 3))
     if reduce == "max":
         reduced = np.where(np.isnan(blocks), -np.inf, blocks).max(axis=(1, 3))
+    elif reduce == "line":
+        reduced = np.minimum(factor * np.nansum(blocks, axis=(1, 3)) / np.maximum(known, 1), 1.0)
     else:
         reduced = np.nansum(blocks, axis=(1, 3)) / np.maximum(known, 1)
     prob = np.where(known > 0, reduced, np.nan)

@@ -107,11 +107,14 @@ def _align(args):
     import taichi_match as tm
 
     a, b = _load_pair(args)
-    options = {k: v for k, v in (("blur", args.blur), ("prior_weight", args.prior_weight),
+    options = {k: v for k, v in (("blur", args.blur), ("blur_kind", args.blur_kind),
+                                 ("prior_weight", args.prior_weight),
                                  ("rotation_scale", args.rotation_scale), ("max_iterations", args.max_iterations),
                                  ("interpolation", args.interpolation), ("optimizer", args.optimizer))
                if v is not None}
-    res = tm.match(a, b, args.initial, **options)
+    # the paper's discrepancy takes the paper's settings (MatchOptions.paper) under the options given
+    base = tm.MatchOptions.paper() if args.blur_kind in ("gaussian", "ramp") else tm.MatchOptions()
+    res = tm.Matcher(base, **options).match(a, b, args.initial)
     cov = res.calibrated_covariance
     if args.json:
         print(json.dumps({
@@ -190,6 +193,9 @@ def main(argv=None):
     align.add_argument("--g2o", nargs=2, type=int, metavar=("ID_A", "ID_B"),
                        help="also print a g2o EDGE_SE2 line (pose and information matrix)")
     align.add_argument("--blur", type=float, help="blur width, metres")
+    align.add_argument("--blur-kind", choices=("envelope", "gaussian", "ramp"),
+                       help="the discrepancy: 'envelope' (default) or the paper's |p_A - p_B| on a 'gaussian' "
+                            "or 'ramp' blur")
     align.add_argument("--interpolation", choices=("nearest", "bilinear"),
                        help="lookup in A: nearest cell (the paper's, default) or bilinear (slower, finer)")
     align.add_argument("--optimizer", choices=("newton", "bfgs"), help="default: newton (nearest), bfgs (bilinear)")

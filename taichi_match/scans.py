@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 
 from ._errors import InvalidOptionError, InvalidPoseError
-from ._grid import GridMap
+from ._grid import GridMap, trinary
 from ._se2 import as_poses
 
 __all__ = ["SensorModel", "beam_segments", "scans_to_grid", "trinary", "count_traversals"]
@@ -175,13 +175,3 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
     prob = 1.0 / (1.0 + np.exp(-log_odds))
     prob[(hits == 0) & (misses == 0)] = np.nan
     return GridMap(prob, resolution, (float(lo[0]), float(lo[1])))
-
-
-def trinary(grid: GridMap, *, occupied: float = 0.65, free: float = 0.196) -> GridMap:
-    """``grid`` as ROS ``map_saver`` writes it: p > ``occupied`` -> 1, p < ``free`` -> 0, else unknown."""
-    p = grid.prob
-    out = np.full(p.shape, np.nan)
-    with np.errstate(invalid="ignore"):
-        out[p > occupied] = 1.0
-        out[p < free] = 0.0
-    return grid.with_prob(out)

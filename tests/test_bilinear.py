@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy import differentiate, ndimage
 
-from taichi_match import GridMap, Matcher
+from taichi_match import GridMap, Matcher, MatchOptions
 from taichi_match._prepared import PreparedMap, make_engine
 from taichi_match.scenes import corridor
 
@@ -53,7 +53,7 @@ def test_the_analytic_gradient_is_the_derivative_of_the_value(rng):
 
 @pytest.mark.parametrize("optimizer", ["newton", "bfgs"])
 def test_bilinear_matches_find_the_corridor(corridor_map, optimizer):
-    matcher = Matcher(interpolation="bilinear", optimizer=optimizer)
+    matcher = Matcher(MatchOptions.paper(interpolation="bilinear", optimizer=optimizer))
     rng = np.random.default_rng(4)
     for _ in range(4):
         r0 = rng.uniform(-1, 1, 3) * (0.5, 0.5, 0.3)

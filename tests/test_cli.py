@@ -37,7 +37,8 @@ def test_align_json_g2o_and_plot(pair, tmp_path, capsys):
     assert (tmp_path / "o.png").stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("extra", [["--interpolation", "bilinear"], ["--optimizer", "bfgs"]])
+@pytest.mark.parametrize("extra", [["--interpolation", "bilinear", "--blur-kind", "gaussian", "--blur", "0.5"],
+                                   ["--optimizer", "bfgs"]])
 def test_align_with_other_methods(pair, capsys, extra):
     a, b, truth = pair
     assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--json", *extra]) == 0

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import differentiate, ndimage
 
-from taichi_match import GridMap, Matcher
+from taichi_match import GridMap, Matcher, MatchOptions
 from taichi_match._cost import gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil
 from taichi_match._prepared import make_engine
 
@@ -51,7 +51,7 @@ def smooth_cost():
     prob = (field - field.min()) / (field.max() - field.min())
     prob[:10, :30] = np.nan
     grid = GridMap(prob, 0.04, (-6.0, -4.8))
-    prepared = Matcher().prepare(grid, blur=0.0)
+    prepared = Matcher(MatchOptions.paper()).prepare(grid, blur=0.0)
     return make_engine("taichi", prepared, prepared), make_engine("numpy", prepared, prepared)
 
 
