@@ -115,9 +115,17 @@ _GRAD_WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0]) / 12.0
 _GRAD_STENCIL = np.vstack([np.zeros(3)] + [np.outer(_GRAD_OFFSETS, np.eye(3)[d]) for d in range(3)])
 
 
-def gradient_stencil(pose, steps):
-    """(13, 3) poses: the centre, then for x, y, theta the offsets -2, -1, +1, +2 steps."""
-    return np.asarray(pose, dtype=np.float64) + _GRAD_STENCIL * steps
+def _offsets(stencil, steps, basis):
+    """Stencil offsets (in steps) as pose offsets: along the columns of ``basis`` (3 x 3, None:
+    the axes x, y, theta), the derivatives from it then being along those directions."""
+    offsets = stencil * np.asarray(steps, dtype=np.float64)
+    return offsets if basis is None else offsets @ np.asarray(basis, dtype=np.float64).T
+
+
+def gradient_stencil(pose, steps, basis=None):
+    """(13, 3) poses: the centre, then for x, y, theta (or the columns of ``basis``) the offsets
+    -2, -1, +1, +2 steps."""
+    return np.asarray(pose, dtype=np.float64) + _offsets(_GRAD_STENCIL, steps, basis)
 
 
 def gradient_from_stencil(values, steps):
@@ -138,9 +146,9 @@ _HESS_STENCIL = np.vstack([_GRAD_STENCIL] + [
     np.array([s1 * np.eye(3)[d1] + s2 * np.eye(3)[d2] for s1, s2 in _CROSS_SIGNS]) for d1, d2 in _PAIRS])
 
 
-def hessian_stencil(pose, steps):
+def hessian_stencil(pose, steps, basis=None):
     """(25, 3) poses: the 13 of ``gradient_stencil``, then 4 corners for each pair (x,y), (x,t), (y,t)."""
-    return np.asarray(pose, dtype=np.float64) + _HESS_STENCIL * steps
+    return np.asarray(pose, dtype=np.float64) + _offsets(_HESS_STENCIL, steps, basis)
 
 
 def _hessian_weights():

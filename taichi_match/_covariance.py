@@ -10,7 +10,12 @@ direction shows as a very large but finite variance, never NaN.
 
 import numpy as np
 
-__all__ = ["covariance_from_hessian"]
+__all__ = ["covariance_from_hessian", "covariance_floor", "FLOOR_CELLS"]
+
+# The standard deviation, in cells of A, of the error that the Hessian cannot see: e is flat
+# within a cell (nearest-cell lookups), so the minimum is a plateau about a cell wide, and the
+# prior parks the pose anywhere on it. Fitted with CALIBRATED_COVARIANCE_SCALE (bench/TUNING.md).
+FLOOR_CELLS = 0.3
 
 
 def covariance_from_hessian(hessian, rotation_scale, *, scale=1.0, degenerate_rtol=1e-3,
@@ -30,3 +35,15 @@ def covariance_from_hessian(hessian, rotation_scale, *, scale=1.0, degenerate_rt
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True) if len(dirs) else np.zeros((0, 3))
     signs = np.where(dirs[np.arange(len(dirs)), np.abs(dirs).argmax(axis=1)] < 0, -1.0, 1.0)
     return cov, dirs * signs[:, None]
+
+
+def covariance_floor(resolution, centroid, spread, theta, cells=None):
+    """The covariance (x, y, theta) of an error of ``cells`` cells (default ``FLOOR_CELLS``) of
+    size ``resolution`` at B's centroid in each direction, and of a rotation moving a typical
+    cell of B (at rms distance ``spread`` from the centroid ``centroid`` in B's frame) as far."""
+    sd = (FLOOR_CELLS if cells is None else cells) * resolution
+    c, s = np.cos(theta), np.sin(theta)
+    cx, cy = centroid
+    to_z = np.array([[1.0, 0.0, -s * cx - c * cy], [0.0, 1.0, c * cx - s * cy], [0.0, 0.0, spread]])
+    from_z = np.linalg.inv(to_z)
+    return sd * sd * (from_z @ from_z.T)

@@ -19,22 +19,25 @@ from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior,
                     prior_hessian, prior_values)
-from ._covariance import covariance_from_hessian
+from ._covariance import covariance_floor, covariance_from_hessian
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
 from ._newton import minimize_newton
 from ._prepared import ENGINES, PreparedMap, make_engine
 from ._se2 import as_pose, wrap_angle
+from ._verdict import Evidence, evidence
 
 __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARIANCE_SCALE"]
 
-# The scale s of cov = s H(e)^-1, measured by bench/calibrate_covariance.py: the paper's corridor
-# matched against copies with 0.2 % of their known cells flipped and 10 % turned unknown, default
-# options, 400 matches (seed 1000): 1.387; `taichi-match reproduce` tests it on other trials (NEES).
-# It holds for the default blur, K, L, steps and optimizer (with optimizer="bfgs" it was 2.58: the
-# compass search stops anywhere within a cell, the Newton iteration nearer the minimum); treat it
-# as indicative elsewhere.
-CALIBRATED_COVARIANCE_SCALE = 1.39
+# The scale s of cov = s H(e)^-1 + floor (``_covariance.covariance_floor``, FLOOR_CELLS cells), fitted
+# by bench/calibrate_covariance.py on the records of bench/submaps.py (laser-built submaps from the
+# eight logs of shared/logs, good guesses, correct matches) and checked on real-map crops
+# (bench/real_maps.py). On the submaps (s, floor) = (2.0, 0.3 cell) gives a mean NEES of 2.9
+# (3 is consistent). On the crops, whose truth is exact and whose B is the same map resampled, the
+# same covariance is conservative (mean NEES about 0.5): the errors there are smaller than on maps
+# built from real scans, and one (s, floor) cannot fit both (bench/TUNING.md). We chose the fit to
+# the use our users have, maps built from scans; valid for the default options.
+CALIBRATED_COVARIANCE_SCALE = 2.0
 
 # Trust region of the Newton driver on entering a finer level, in that level's cells: the
 # coarser level left the pose within a few of its own cells (measured in bench/TUNING.md).
@@ -222,6 +225,10 @@ class MatchResult:
     overlap : number of known cells of B that land on known cells of A at ``pose``.
     initial_pose, iterations, evaluations (poses evaluated), launches (batched evaluations),
     converged, status, message, seconds (wall clock of the whole match).
+    accepted : the verdict: True when the pose can be trusted (``converged`` only says the
+        optimiser stopped at a minimum). ``evidence`` holds what it rests on: walls compared, the
+        share of walls meeting the other map's walls, the share landing on its free space, and
+        the largest standard deviation outside degenerate directions (``taichi_match._verdict``).
     """
 
     pose: np.ndarray
@@ -240,13 +247,17 @@ class MatchResult:
     status: Status
     message: str
     seconds: float
+    accepted: bool
+    evidence: Evidence
+    covariance_floor: np.ndarray
     options: MatchOptions = field(repr=False)
 
     @property
     def calibrated_covariance(self):
-        """``CALIBRATED_COVARIANCE_SCALE * H(e)^-1``: the covariance with the scale measured by the
-        reproduction's covariance check (valid for the default options)."""
-        return self.covariance * (CALIBRATED_COVARIANCE_SCALE / self.options.covariance_scale)
+        """``CALIBRATED_COVARIANCE_SCALE * H(e)^-1 + covariance_floor``: the covariance to put in a
+        pose graph, consistent with the errors measured on laser-built submaps and real-map crops
+        (see ``CALIBRATED_COVARIANCE_SCALE``; valid for the default options)."""
+        return self.covariance * (CALIBRATED_COVARIANCE_SCALE / self.options.covariance_scale) + self.covariance_floor
 
     # OptimizeResult-style aliases
     @property
@@ -328,12 +339,18 @@ class Matcher:
         if len(degenerate) == 3 and status.converged:
             status = Status.NO_INFORMATION
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
+        floor = covariance_floor(prep_a.resolution, prep_b.centroid, prep_b.spread, pose[2])
+        calibrated = covariance * (CALIBRATED_COVARIANCE_SCALE / opts.covariance_scale) + floor
+        proof = evidence(prep_a.wall_distance, prep_b.wall_distance, pose, calibrated, degenerate, prep_b.centroid,
+                         prep_b.spread)
         return MatchResult(
             pose=pose, covariance=covariance, information=information, degenerate=degenerate,
             cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
             initial_pose=r0, iterations=nit, evaluations=counter.poses, launches=counter.launches,
             converged=status.converged, status=status, message=MESSAGES[status],
-            seconds=time.perf_counter() - start, options=opts)
+            seconds=time.perf_counter() - start, accepted=proof.accepts(status.converged), evidence=proof,
+            covariance_floor=floor,
+            options=opts)
 
     @staticmethod
     def _newton_levels(prep_a, prep_b, opts, r0, full_weight, counter):
@@ -346,7 +363,7 @@ class Matcher:
             # the overlap is needed at the start (is there any?) and at the end (the result's)
             count = "first" if level == 0 and cost.counts_free else "none"
             evaluate = functools.partial(cost.value_gradient_hessian, count=count)
-            first = cost.value_gradient_hessian(r * cost.scale, count="first" if level == top else count)
+            first = cost.value_gradient_hessian(cost.to_z(r), count="first" if level == top else count)
             if level == top and first[3][1] == 0:
                 return r0, Status.NO_OVERLAP, 0, first[0], 0.0, 0, np.zeros((3, 3))
             if level == top:
@@ -354,10 +371,10 @@ class Matcher:
             else:
                 radius = (ENTRY_RADIUS_CELLS_FINEST if level == 0 else ENTRY_RADIUS_CELLS) * eps
                 budget = min(opts.refine_iterations, opts.max_iterations)
-            res = minimize_newton(evaluate, r * cost.scale, radius=radius, max_radius=cost.max_step,
+            res = minimize_newton(evaluate, cost.to_z(r), radius=radius, max_radius=cost.max_step,
                                   xtol=opts.step_tolerance * eps, gtol=opts.gtol * cost.weight,
                                   max_launches=budget, first=first, gradient_fallback=level == top)
-            r, nit = res.z / cost.scale, nit + res.nit
+            r, nit = cost.to_r(res.z), nit + res.nit
             if level == top:          # the finer levels refine within a fixed budget of launches
                 status = res.status
         e, overlap, information = res.extra
@@ -374,26 +391,26 @@ class Matcher:
             cost = _LevelCost(prep_a.level(level), prep_b.level(level), prep_b, opts, r0, full_weight, counter)
             eps = cost.steps[0]
             h_start, grad_start, counts = cost.value_and_gradient(r, count="first")
-            z, step = r * cost.scale, 4.0 * eps
+            z, step = cost.to_z(r), 4.0 * eps
             if level == top and counts[0] == 0:
                 return r0, Status.NO_OVERLAP, 0, h_start, 0.0, 0, np.zeros((3, 3))
             if level == top:                               # BFGS from the initial guess
                 res = minimize_bfgs(cost.fun_grad, z, max_step=cost.max_step, xtol=opts.step_tolerance * eps,
                                     gtol=opts.gtol * cost.weight, max_iterations=opts.max_iterations,
-                                    first=(h_start, grad_start / cost.scale))
+                                    first=(h_start, cost.grad_z(grad_start)))
                 z, h_start, status, nit = res.z, res.fun, res.status, nit + res.nit
             elif level == 0:                               # a few BFGS steps of at most two cells
                 res = minimize_bfgs(cost.fun_grad, z, max_step=2.0 * eps, xtol=opts.step_tolerance * eps,
                                     gtol=opts.gtol * cost.weight,
                                     max_iterations=min(opts.refine_iterations, opts.max_iterations),
-                                    first=(h_start, grad_start / cost.scale))
+                                    first=(h_start, cost.grad_z(grad_start)))
                 z, h_start, nit, step = res.z, res.fun, nit + res.nit, eps
             # then the compass search (alone on the levels in between)
             z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.step_tolerance * eps,
                                       max_step=cost.max_step)
-            r = z / cost.scale
+            r = cost.to_r(z)
         # eq. (11)-(12) on the given maps, one launch
-        _, _, _, (e, overlap, information) = cost.value_gradient_hessian(r * cost.scale, count="first")
+        _, _, _, (e, overlap, information) = cost.value_gradient_hessian(cost.to_z(r), count="first")
         return r, status, nit, cost_value, e, overlap, information
 
 
@@ -408,9 +425,8 @@ class _Counter:
 class _LevelCost:
     """h (eq. 8) on one level of the pyramid, as the optimisers see it.
 
-    Poses r are (x, y, theta); the optimisers work in z = r * scale, all in metres: theta times
-    B's rms radius, so that a unit step moves a typical cell of B by about a metre whichever way
-    it goes. e is a sum over B's cells, so K follows the number of cells at this level.
+    Poses r are (x, y, theta); the optimisers work in z = M r, all in metres (see ``__init__``),
+    so that a unit step moves a typical cell of B by about a metre whichever way it goes. e is a sum over B's cells, so K follows the number of cells at this level.
     With ``interpolation="nearest"`` (the paper's e) derivatives come from the stencils of
     eq. (10)-(12); with "bilinear" the gradient is analytic (one pose) and the Hessian is the
     central difference of gradients at +-1 step on each axis (7 poses).
@@ -424,13 +440,39 @@ class _LevelCost:
         self._rotation_scale = opts.rotation_scale
         self.steps = opts.steps(pa.resolution, prep_b.radius)
         self.weight = full_weight * pb.n_known / max(prep_b.n_known, 1)
-        self.scale = np.array([1.0, 1.0, prep_b.radius])
+        # z = M r: B's centroid's position in A and theta times B's rms radius about its centroid,
+        # linearised at r0's theta. A unit step in z then moves a typical cell of B by about a
+        # metre whichever way, also when B's frame origin lies far from its cells (ROS maps put it
+        # at a corner, tens of metres away): there a rotation about the origin is mostly a
+        # translation, and a trust region in (x, y, theta * radius) crawled along the valley of
+        # rotations about the map's own centre (a self-match from 0.02 rad stopped 0.4 deg off).
+        cx, cy = prep_b.centroid
+        c, s = np.cos(r0[2]), np.sin(r0[2])
+        self._to_z = np.array([[1.0, 0.0, -s * cx - c * cy], [0.0, 1.0, c * cx - s * cy], [0.0, 0.0, prep_b.spread]])
+        self._from_z = np.linalg.inv(self._to_z)
+        # the stencils' steps in z: one cell of A along x and y, and a rotation about B's centroid
+        # that moves a typical cell of B by one cell (the derivatives of e then come in z directly;
+        # taken about B's frame origin they hid the rotation about B's centre in the rounding of
+        # far larger terms)
+        self.z_steps = np.array([self.steps[0], self.steps[1],
+                                 self.steps[0] if opts.rotation_step is None else opts.rotation_step * prep_b.spread])
         self.max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * self.steps[0])
 
     @property
     def counts_free(self):
         """Whether the engine counts the overlap in the same launch as e."""
         return self._engine.counts_free
+
+    def to_z(self, r):
+        """The optimiser's coordinates z = M r of a pose r."""
+        return self._to_z @ np.asarray(r, dtype=np.float64)
+
+    def to_r(self, z):
+        return self._from_z @ np.asarray(z, dtype=np.float64)
+
+    def grad_z(self, grad_r):
+        """A gradient in r as a gradient in z."""
+        return self._from_z.T @ grad_r
 
     def _count(self, poses, count="none"):
         self._counter.launches += 1 if count == "none" or self.counts_free else 2
@@ -449,45 +491,46 @@ class _LevelCost:
         return self._engine(poses, count)
 
     def value_and_gradient(self, r, count="none"):
-        """h and its gradient at r: the 13-pose stencil (eq. 10), or one pose (bilinear)."""
+        """h and its gradient in r at r: the 13-pose stencil (eq. 10) in z, or one pose (bilinear)."""
         if self._bilinear:
             self._count(1)
             values, counts, grads = self._engine.bilinear(r[None, :])
             grad = grads[0]
         else:
-            values, counts = self.evaluate(gradient_stencil(r, self.steps), count)
-            grad = gradient_from_stencil(values, self.steps)
+            values, counts = self.evaluate(gradient_stencil(r, self.z_steps, self._from_z), count)
+            grad = self._to_z.T @ gradient_from_stencil(values, self.z_steps)
         p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
         return values[0] + p_val, grad + p_grad, counts
 
     def value_gradient_hessian(self, z, count="none"):
         """h, its gradient and Hessian in z (the prior's included), from one launch; extra:
         (e, overlap or None, Hessian of e in r) at z."""
-        r = z / self.scale
+        r = self.to_r(z)
         if self._bilinear:
             self._count(7)
             poses = r + np.vstack([np.zeros(3), np.diag(self.steps), -np.diag(self.steps)])
             values, counts, grads = self._engine.bilinear(poses)
-            grad = grads[0]
             hess = (grads[1:4] - grads[4:7]).T / (2.0 * self.steps)      # column q: d grad / d r_q
             hess = 0.5 * (hess + hess.T)
+            grad_z, hess_z = self.grad_z(grads[0]), self._from_z.T @ hess @ self._from_z
         else:
             self._count(25, count)
-            values, counts = self._engine.hessian_stencil(r, self.steps, count)
-            grad, hess = gradient_from_stencil(values, self.steps), hessian_from_stencil(values, self.steps)
+            values, counts = self._engine.hessian_stencil(r, self.z_steps, count, basis=self._from_z)
+            grad_z, hess_z = gradient_from_stencil(values, self.z_steps), hessian_from_stencil(values, self.z_steps)
+            hess = self._to_z.T @ hess_z @ self._to_z                      # eq. (12) in r
         p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
         h_prior = prior_hessian(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
         extra = (values[0], None if counts is None else counts[0], hess)
-        return (values[0] + p_val, (grad + p_grad) / self.scale,
-                (hess + h_prior) / np.outer(self.scale, self.scale), extra)
+        return (values[0] + p_val, grad_z + self.grad_z(p_grad),
+                hess_z + self._from_z.T @ h_prior @ self._from_z, extra)
 
     def fun_grad(self, z):
-        h, grad, _ = self.value_and_gradient(z / self.scale)
-        return h, grad / self.scale
+        h, grad, _ = self.value_and_gradient(self.to_r(z))
+        return h, self.grad_z(grad)
 
     def batch(self, zs):
         """h at a batch of points z, one launch (for the compass search)."""
-        rs = zs / self.scale
+        rs = zs @ self._from_z.T
         e_values, _ = self.evaluate(rs, count="none")
         return e_values + prior_values(rs, self._r0, self.weight, self._rotation_scale)
 

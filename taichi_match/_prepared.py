@@ -19,6 +19,7 @@ from ._kernels import PAD, TaichiEngine
 from ._pyramid import coarsen
 from ._envelope import EnvelopeEngine, NumpyEnvelope, conflict_grid, wall_points
 from ._reference import NumpyBilinear, NumpyDiscrepancy
+from ._verdict import WallDistance
 
 __all__ = ["PreparedMap", "make_engine", "ENGINES"]
 
@@ -69,9 +70,14 @@ class PreparedMap:
         centres = grid.cell_centres(*np.nonzero(known))
         self.radius = max(float(np.sqrt(np.mean(np.sum(centres**2, axis=1)))) if len(centres) else 0.0,
                           grid.resolution)
+        # the known cells' centroid in the map frame, and their rms distance from it
+        self.centroid = centres.mean(axis=0) if len(centres) else np.zeros(2)
+        self.spread = max(float(np.sqrt(np.mean(np.sum((centres - self.centroid) ** 2, axis=1))))
+                          if len(centres) else 0.0, grid.resolution)
 
         self._coarser = None
         self._coarser_grid = None
+        self._wall_distance = None
 
     @property
     def grid(self) -> GridMap:
@@ -85,6 +91,13 @@ class PreparedMap:
         if grid is None:
             raise ReferenceError("the map this PreparedMap was made from no longer exists")
         return grid
+
+    @property
+    def wall_distance(self):
+        """The map's walls and their distance transform, for the verdict (computed once)."""
+        if self._wall_distance is None:
+            self._wall_distance = WallDistance(self.grid)
+        return self._wall_distance
 
     def coarser(self):
         """The next level of the pyramid: the map with cells twice as large, blurred ``blur_growth``
@@ -152,9 +165,9 @@ class EnvelopeDiscrepancy:
         """The overlap (N,) at each pose, one launch."""
         return self._dense.overlap(poses)
 
-    def hessian_stencil(self, pose, steps, count="first"):
-        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps)`` (one launch)."""
-        return self(hessian_stencil(pose, steps), count)
+    def hessian_stencil(self, pose, steps, count="first", basis=None):
+        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps, basis)`` (one launch)."""
+        return self(hessian_stencil(pose, steps, basis), count)
 
     def bilinear(self, poses):
         raise InvalidOptionError('interpolation="bilinear" needs a dense blur ("gaussian" or "ramp"), '
@@ -195,14 +208,15 @@ class Engine:
         """The overlap (N,) at each pose, one launch."""
         return self(poses, "all")[1]
 
-    def hessian_stencil(self, pose, steps, count="first"):
-        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps)``, in its order (one launch);
+    def hessian_stencil(self, pose, steps, count="first", basis=None):
+        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps, basis)``, in its order (one launch);
         count: "first" (the centre's overlap) or "none"."""
-        if (self.name == "taichi" and self._stencil_kernel
+        basis = np.eye(3) if basis is None else np.asarray(basis, dtype=np.float64)
+        if (self.name == "taichi" and self._stencil_kernel and np.array_equal(basis[:, :2], np.eye(3)[:, :2])
                 and steps[0] == self._resolution_a and steps[1] == self._resolution_a):
-            thetas = np.asarray(pose, dtype=np.float64) + np.outer(np.arange(-2.0, 3.0), [0.0, 0.0, steps[2]])
+            thetas = np.asarray(pose, dtype=np.float64) + np.outer(np.arange(-2.0, 3.0), steps[2] * basis[:, 2])
             return self._kernel.hessian_stencil(self._affine(thetas), count)
-        return self(hessian_stencil(pose, steps), count)
+        return self(hessian_stencil(pose, steps, basis), count)
 
     def bilinear(self, poses):
         """A interpolated bilinearly between its cell centres (an option beyond the paper):

@@ -9,12 +9,15 @@ from ._grid import GridMap
 __all__ = ["coarsen"]
 
 
-def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max"] = "mean") -> GridMap:
+def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line"] = "mean") -> GridMap:
     """``grid`` with cells ``factor`` times larger, unknown where a coarse cell has no known fine
-    cell. Each coarse cell is the mean of its known fine cells, or with ``reduce="max"`` their
-    maximum: a one-cell wall then stays a wall at every level instead of fading to grey (a 2 x 2
-    block holding one wall cell has mean 1/4). The corner pose is kept; a last partial row or
-    column is reduced over the cells it has."""
+    cell. Each coarse cell is the mean of its known fine cells; with ``reduce="max"`` their
+    maximum; with ``reduce="line"`` ``min(1, factor * mean)``: a one-cell wall fills 1 / factor of
+    a block it crosses, so it stays a wall at every level while a lone occupied cell fades (1/2,
+    then 1/4 ...), where the mean fades both and the maximum keeps both. The corner pose is kept; a
+    last partial row or column is reduced over the cells it has."""
+    if reduce not in ("mean", "max", "line"):
+        raise ValueError(f"reduce must be 'mean', 'max' or 'line'; got {reduce!r}")
     rows, cols = grid.shape
     r2, c2 = -(-rows // factor), -(-cols // factor)
     padded = np.full((r2 * factor, c2 * factor), np.nan)

@@ -79,7 +79,7 @@ def _reproduce(args):
     return 0
 
 
-EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_OK, EXIT_NOT_ACCEPTED, EXIT_BAD_INPUT = 0, 1, 2
 
 
 def _map_overrides(args, which):
@@ -120,6 +120,9 @@ def _align(args):
         print(json.dumps({
             "pose": res.pose.tolist(), "covariance": cov.tolist(), "covariance_unscaled": res.covariance.tolist(),
             "information": res.information.tolist(), "degenerate": res.degenerate.tolist(),
+            "accepted": bool(res.accepted), "evidence": {
+                "walls_compared": res.evidence.walls_compared, "wall_agreement": res.evidence.wall_agreement,
+                "wall_conflict": res.evidence.wall_conflict, "uncertainty_m": res.evidence.uncertainty},
             "status": res.status.name, "converged": bool(res.converged), "message": res.message,
             "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
             "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
@@ -128,6 +131,10 @@ def _align(args):
         x, y, t = res.pose
         print(f"pose (B in A)  x={x:+.4f} m  y={y:+.4f} m  theta={t:+.5f} rad")
         print(f"status         {res.status.name}: {res.message}")
+        ev = res.evidence
+        print(f"verdict        {'ACCEPTED' if res.accepted else 'NOT ACCEPTED'}: {ev.walls_compared} walls compared, "
+              f"{100 * ev.wall_agreement:.0f} % meet the other map's walls, {100 * ev.wall_conflict:.0f} % land on "
+              f"its free space, uncertainty {100 * ev.uncertainty:.1f} cm")
         print(f"iterations     {res.iterations}, overlap {res.overlap} cells, time {1e3 * res.seconds:.1f} ms")
         print("covariance (x, y, theta), calibrated:")
         print(np.array2string(cov, precision=6))
@@ -141,7 +148,7 @@ def _align(args):
     if args.plot:
         from taichi_match import plots
         plots.save_overlay(args.plot, a, b, res.initial_pose, res, title=f"{args.map_a} + {args.map_b}")
-    return EXIT_OK if res.converged else EXIT_NOT_CONVERGED
+    return EXIT_OK if res.accepted else EXIT_NOT_ACCEPTED
 
 
 def _merge(args):
@@ -184,7 +191,8 @@ def main(argv=None):
     rep.add_argument("--seed", type=int, default=0, help="seed of the initial poses and noise (default: %(default)s)")
     rep.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     rep.set_defaults(func=_reproduce)
-    align = sub.add_parser("align", help="find the pose of map B in map A (exit 0 converged, 1 not, 2 bad input)")
+    align = sub.add_parser("align", help="find the pose of map B in map A (exit 0: accepted, 1: not accepted, "
+                                         "2: bad input)")
     _add_map_arguments(align)
     align.add_argument("--initial", nargs=3, type=float, required=True, metavar=("X", "Y", "THETA"),
                        help="initial guess of B's pose in A (metres, metres, radians)")

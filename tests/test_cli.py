@@ -57,6 +57,26 @@ def test_align_exit_codes(pair, tmp_path, capsys):
     assert exc.value.code == 2
 
 
+def test_align_exits_0_only_for_an_accepted_match(pair, capsys):
+    """Exit 0 iff accepted; --json carries the verdict and its evidence. Wrong poses that the
+    optimiser reports as converged must exit 1 (they used to exit 0)."""
+    a, b, truth = pair
+    wrong_converged = 0
+    for guess in (("0", "0", "0"), ("2.5", "-1.5", "0.7"), ("-2", "2", "-0.8"), ("3", "1", "1.2")):
+        code = main(["align", str(a), str(b), "--initial", *guess, "--json"])
+        out = json.loads(capsys.readouterr().out)
+        assert set(out["evidence"]) == {"walls_compared", "wall_agreement", "wall_conflict", "uncertainty_m"}
+        err = np.array(out["pose"]) - truth
+        right = np.hypot(err[0], err[1]) < 0.1 and abs((err[2] + np.pi) % (2 * np.pi) - np.pi) < np.radians(1)
+        assert code == (0 if out["accepted"] else 1)
+        if out["accepted"]:
+            assert right, (guess, out)
+        wrong_converged += out["converged"] and not right
+    assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--json"]) == 0      # a good guess
+    capsys.readouterr()
+    assert wrong_converged >= 1        # the far guesses do produce converged wrong poses, and exit 1
+
+
 def test_merge_writes_a_map_in_as_frame(pair, tmp_path):
     a, b, truth = pair
     out = tmp_path / "merged.yaml"

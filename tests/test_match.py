@@ -161,8 +161,15 @@ def test_evaluation_counts_stay_small_on_a_fixed_problem(corridor_map, matcher):
 def test_calibrated_covariance_uses_the_published_scale(corridor_map, matcher):
     from taichi_match import CALIBRATED_COVARIANCE_SCALE
 
+    from taichi_match._covariance import FLOOR_CELLS
+
     res = matcher.match(corridor_map, corridor_map, (0.1, 0.2, 0.05), covariance_scale=4.0)
-    assert np.allclose(res.calibrated_covariance, res.covariance / 4.0 * CALIBRATED_COVARIANCE_SCALE)
+    assert np.allclose(res.calibrated_covariance,
+                       res.covariance / 4.0 * CALIBRATED_COVARIANCE_SCALE + res.covariance_floor)
+    # the floor: FLOOR_CELLS cells at B's centroid (here the map's centre, (0, 0)) along x and y
+    floor = res.covariance_floor
+    assert np.allclose(np.sqrt(floor[0, 0]), FLOOR_CELLS * corridor_map.resolution, rtol=1e-6)
+    assert np.allclose(np.sqrt(floor[1, 1]), FLOOR_CELLS * corridor_map.resolution, rtol=1e-6)
 
 
 def test_coarse_to_fine_levels_reach_the_same_answer(corridor_map):

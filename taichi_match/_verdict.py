@@ -1,0 +1,110 @@
+"""The verdict: is a matched pose trustworthy enough to go into a pose graph or a map merge?
+
+A match can converge to a wrong pose: the optimiser only finds a minimum near the guess. The
+verdict looks at what the two maps say at the pose found, with the same measure whatever
+discrepancy was optimised: the occupied cells ("walls") of each map, taken at their centres,
+are placed in the other map (B's by r, A's by r^-1) and sorted by where they land:
+
+- ``walls_compared``: walls landing on known cells of the other map (both ways);
+- ``wall_agreement``: the share of those within ``AGREE_CELLS`` cells of one of the other map's
+  walls: the maps see the same structure there;
+- ``wall_conflict``: the share landing on free space farther than ``CONFLICT_CELLS`` cells from
+  any wall of the other map: one map saw an obstacle where the other saw through;
+- ``uncertainty``: the largest standard deviation of the calibrated covariance outside the
+  degenerate directions, as a distance in metres: of B's centroid in A, and of theta times B's
+  rms radius about its centroid (how far a typical cell of B may be off).
+
+``accepted`` = converged, at least ``MIN_WALLS`` walls compared, agreement at least
+``MIN_AGREEMENT``, conflict at most ``MAX_CONFLICT`` and uncertainty at most
+``MAX_UNCERTAINTY_M``. The thresholds were chosen on laser-built submaps and real-map crops with
+good and bad guesses (bench/submaps.py, bench/real_maps.py; bench/TUNING.md): a right pose makes
+most walls meet walls; a wrong one, even a "converged" one, leaves many on free space.
+Distances are in cells of each map, found from a distance transform of its walls (computed once
+per map and kept with the prepared map).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from ._se2 import inverse, transform_points
+
+__all__ = ["Evidence", "evidence", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
+           "MAX_CONFLICT", "MAX_UNCERTAINTY_M"]
+
+AGREE_CELLS = 2.0
+CONFLICT_CELLS = 4.0
+MIN_WALLS = 50
+MIN_AGREEMENT = 0.5
+MAX_CONFLICT = 0.2
+MAX_UNCERTAINTY_M = 0.05
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """What the verdict rests on (see the module docstring)."""
+
+    walls_compared: int
+    wall_agreement: float
+    wall_conflict: float
+    uncertainty: float
+
+    def accepts(self, converged: bool) -> bool:
+        return bool(converged and self.walls_compared >= MIN_WALLS and self.wall_agreement >= MIN_AGREEMENT
+                    and self.wall_conflict <= MAX_CONFLICT and self.uncertainty <= MAX_UNCERTAINTY_M)
+
+
+class WallDistance:
+    """A map's walls (p >= 0.5) and, per cell, the distance in cells to the nearest one (NaN on
+    unknown cells)."""
+
+    def __init__(self, grid):
+        p = grid.prob
+        occupied = np.nan_to_num(p, nan=0.0) >= 0.5
+        self.grid = grid
+        rows, cols = np.nonzero(occupied)
+        self.centres = grid.cell_centres(rows, cols)
+        if occupied.any():
+            self.distance = ndimage.distance_transform_edt(~occupied)
+        else:
+            self.distance = np.full(p.shape, np.inf)
+        self.distance[np.isnan(p)] = np.nan
+
+    def lookup(self, points):
+        """Distance to the nearest wall at each map-frame point (NaN: unknown or off the map)."""
+        rows, cols = self.grid.cell_of(points)
+        h, w = self.grid.shape
+        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+        out = np.full(len(points), np.nan)
+        out[inside] = self.distance[rows[inside].astype(np.intp), cols[inside].astype(np.intp)]
+        return out
+
+
+def evidence(walls_a: WallDistance, walls_b: WallDistance, pose, covariance, degenerate, centroid, spread) -> Evidence:
+    """The evidence at ``pose`` (r_A2B) for maps with walls ``walls_a``, ``walls_b``; B's known
+    cells have their centroid at ``centroid`` (B's frame) and rms distance ``spread`` from it."""
+    d = np.concatenate([walls_a.lookup(transform_points(pose, walls_b.centres)),
+                        walls_b.lookup(transform_points(inverse(pose), walls_a.centres))])
+    d = d[~np.isnan(d)]
+    n = len(d)
+    agreement = float(np.mean(d <= AGREE_CELLS)) if n else 0.0
+    conflict = float(np.mean(d > CONFLICT_CELLS)) if n else 1.0
+    return Evidence(n, agreement, conflict, _uncertainty(covariance, degenerate, pose[2], centroid, spread))
+
+
+def _uncertainty(covariance, degenerate, theta, centroid, spread):
+    """The largest standard deviation, metres, outside the degenerate directions."""
+    c, s = np.cos(theta), np.sin(theta)
+    cx, cy = centroid
+    m = np.array([[1.0, 0.0, -s * cx - c * cy], [0.0, 1.0, c * cx - s * cy], [0.0, 0.0, spread]])
+    cov = m @ np.asarray(covariance) @ m.T
+    if len(degenerate):
+        dirs = np.asarray(degenerate) @ m.T
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        q, _ = np.linalg.qr(dirs.T, mode="complete")
+        keep = q[:, len(degenerate):]
+        cov = keep.T @ cov @ keep
+    if cov.size == 0:
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (cov + cov.T)).max(), 0.0)))

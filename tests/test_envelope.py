@@ -1,0 +1,401 @@
+"""The envelope discrepancy (``_envelope``): the Taichi kernel against the NumPy oracle, both
+against hand values, its symmetry and its minimum at the truth; the line-reduced pyramid, the
+trinary evidence and the options that go with it."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import taichi_match as tm
+from conftest import rasterize, room_scene
+from taichi_match import (GridMap, InvalidOptionError, Matcher, MatchOptions, PreparedMap, inverse, make_engine,
+                          transform_points)
+from taichi_match._envelope import EnvelopeEngine, NumpyEnvelope
+from taichi_match._grid import trinary
+from taichi_match._pyramid import coarsen
+
+TRUTH = (0.15, -0.1, 0.05)
+
+
+@pytest.fixture(scope="module")
+def room_pair():
+    """The pair of tests/test_cli.py: B sampled from the room at r_A2B = TRUTH."""
+    a = rasterize(room_scene, (130, 170), 0.05, (-4.1, -3.1))
+    b = rasterize(room_scene, (120, 160), 0.05, (-4.0, -3.0), pose_a2b=TRUTH)
+    return a, b
+
+
+def sparse_walls_map(rng, shape, resolution, origin, walls=0.08, unknown=0.2):
+    """Grey probabilities: a fraction ``walls`` of the cells occupied (p in [0.5, 1]), the rest
+    in [0, 0.5), a fraction ``unknown`` NaN."""
+    prob = np.where(rng.random(shape) < walls, rng.uniform(0.5, 1.0, shape), rng.uniform(0.0, 0.5, shape))
+    prob[rng.random(shape) < unknown] = np.nan
+    return GridMap(prob, resolution, origin)
+
+
+def boundary_ties(dst, src, pose, cells, tol=2e-4):
+    """How many of ``src``'s ``cells`` (rows, cols), moved into ``dst``'s frame by ``pose``
+    (r_dst2src, which maps src's points into dst's frame), land within ``tol`` cells of one of
+    ``dst``'s cell boundaries, on or next to the grid: there the kernel's float32 and the
+    oracle's float64 may floor differently."""
+    rows, cols = cells
+    if len(rows) == 0:
+        return 0
+    r, c = dst.grid_coordinates(transform_points(pose, src.cell_centres(rows, cols)))
+    h, w = dst.shape
+    near_grid = (r > -1) & (r < h + 1) & (c > -1) & (c < w + 1)
+    near = lambda x: np.abs(x - np.round(x)) < tol       # noqa: E731
+    return int(np.count_nonzero(near_grid & (near(r) | near(c))))
+
+
+def walls_of(grid):
+    return np.nonzero(np.nan_to_num(grid.prob, nan=0.0) >= 0.5)
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. The kernel equals the oracle
+
+CASES = {  # shape_a, res_a, origin_a, shape_b, res_b, origin_b
+    "same-grid": ((40, 50), 0.1, (-2.0, -2.5), (40, 50), 0.1, (-2.0, -2.5)),
+    "other-resolution-and-origin": ((45, 60), 0.1, (-2.0, -3.0), (50, 38), 0.07, (-1.2, -0.9)),
+    "turned-a": ((40, 56), 0.05, (-2.0, -1.0, 0.3), (36, 44), 0.05, (-0.8, -0.6)),
+    "both-turned": ((30, 42), 0.08, (0.5, -1.5, -1.1), (44, 28), 0.06, (-1.0, 0.4, 2.4)),
+}
+FAR_POSES = [(1e9, 0.0, 0.0), (-1e9, 3.0, 1.0), (0.0, 1e9, -2.0), (1e5, -1e5, 0.3), (3e7, 3e7, np.pi)]
+
+
+@pytest.mark.parametrize("unknown_cost", [0.0, 0.3, 1.0])
+@pytest.mark.parametrize("case", list(CASES))
+def test_kernel_equals_numpy_oracle(case, unknown_cost, rng):
+    shape_a, res_a, origin_a, shape_b, res_b, origin_b = CASES[case]
+    a = sparse_walls_map(rng, shape_a, res_a, origin_a)
+    b = sparse_walls_map(rng, shape_b, res_b, origin_b, unknown=0.3)
+    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
+    extent = max(shape_a) * res_a
+    n = 48
+    poses = np.column_stack([rng.uniform(-0.5, 0.5, n) * extent, rng.uniform(-0.5, 0.5, n) * extent,
+                             rng.uniform(-np.pi, np.pi, n)])
+    v_ti, n_ti = make_engine("taichi", pa, pb, unknown_cost)(poses)
+    v_np, n_np = make_engine("numpy", pa, pb, unknown_cost)(poses)
+    # the envelope kernel's own count: walls landing on known cells of the other map
+    w_ti = EnvelopeEngine(pa, pb, unknown_cost)(poses)[1]
+    w_np = NumpyEnvelope(a, pa.blurred, b, pb.blurred, unknown_cost)(poses)[1]
+
+    wall_ties = np.array([boundary_ties(a, b, p, walls_of(b)) + boundary_ties(b, a, inverse(p), walls_of(a))
+                          for p in poses])
+    known_ties = np.array([boundary_ties(a, b, p, np.nonzero(b.known)) for p in poses])
+    clean = wall_ties == 0
+    assert clean.mean() >= 0.7, "too few poses free of float32 boundary ties to compare exactly"
+    # tie-free poses: the same value up to float32 rounding of the sums, the same counts
+    np.testing.assert_allclose(v_ti[clean], v_np[clean], rtol=1e-5, atol=1e-4)
+    np.testing.assert_array_equal(w_ti[clean], w_np[clean])
+    np.testing.assert_array_equal(n_ti[known_ties == 0], n_np[known_ties == 0])
+    # the others: each point on a boundary may cost at most 1 more or less (weights, costs <= 1)
+    assert np.all(np.abs(v_ti - v_np) <= 1e-5 * np.abs(v_np) + 1e-4 + wall_ties)
+    assert np.all(np.abs(w_ti - w_np) <= wall_ties)
+    assert np.all(np.abs(n_ti - n_np) <= known_ties)
+    # the comparison is not vacuous: walls land on known cells and cost something
+    assert w_np.max() > 20 and v_np.max() > 1.0
+    if unknown_cost > 0:            # walls on unknown cells were charged somewhere
+        free_of_unknown = make_engine("numpy", pa, pb, 0.0)(poses)[0]
+        assert np.any(v_np > free_of_unknown + 0.5 * unknown_cost)
+
+    # poses that put B (and A in B) millions of cells away: nothing lands, nothing is charged
+    for name in ("taichi", "numpy"):
+        values, counts = make_engine(name, pa, pb, unknown_cost)(FAR_POSES)
+        assert values.tolist() == [0.0] * len(FAR_POSES), name
+        assert counts.tolist() == [0] * len(FAR_POSES), name
+    assert EnvelopeEngine(pa, pb, unknown_cost)(FAR_POSES)[1].tolist() == [0] * len(FAR_POSES)
+
+
+def test_far_poses_mixed_into_a_batch_do_not_disturb_the_others(rng):
+    a = sparse_walls_map(rng, (40, 50), 0.1, (-2.0, -2.5))
+    b = sparse_walls_map(rng, (30, 30), 0.1, (-1.5, -1.5))
+    engine = make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope"), 0.3)
+    near = np.array([(0.013, -0.021, 0.1), (0.31, 0.2, -0.4)])
+    alone, counts_alone = engine(near)
+    mixed, counts_mixed = engine(np.vstack([near[:1], FAR_POSES, near[1:]]))
+    assert mixed[[0, -1]].tolist() == alone.tolist() and counts_mixed[[0, -1]].tolist() == counts_alone.tolist()
+    assert np.all(mixed[1:-1] == 0.0) and alone.min() > 0.0
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. Hand values
+
+
+def test_hand_computed_values_on_one_row_maps():
+    # resolution 1 m, blur 1 m: the envelope at d cells from a wall is exp(-d^2 / 2)
+    a = GridMap(np.array([[1.0, 0.0, 0.0, np.nan, 0.0, 0.0, 0.0, 0.0]]), 1.0)   # wall centre (0.5, 0.5)
+    b = GridMap(np.array([[1.0, 0.0, np.nan]]), 1.0)                            # wall centre (0.5, 0.5)
+    pa, pb = PreparedMap(a, 1.0, "envelope"), PreparedMap(b, 1.0, "envelope")
+    bowl = lambda d: 1.0 - np.exp(-0.5 * d * d)       # noqa: E731
+    u = 0.3
+    cases = [  # pose, e, walls landing on known cells
+        ((0, 0, 0), 0.0, 2),                      # each wall on the other's wall
+        ((1, 0, 0), bowl(1), 1),                  # B's wall on A's free cell 1; A's wall off B
+        ((2, 0, 0), bowl(2), 1),
+        ((3, 0, 0), u, 0),                        # B's wall on A's unknown cell 3
+        ((7, 0, 0), bowl(7), 1),                  # free, far from A's wall: ~1
+        ((8, 0, 0), 0.0, 0),                      # off A's grid: nothing
+        ((-1, 0, 0), bowl(1), 1),                 # A's wall on B's free cell 1; B's wall off A
+        ((-2, 0, 0), u, 0),                       # A's wall on B's unknown cell 2
+        ((-3, 0, 0), 0.0, 0),
+        ((0, 1, 0), 0.0, 0),                      # a row above both grids
+        ((1, 1, np.pi), 0.0, 2),                  # turned half a turn about (0.5, 0.5)
+        ((8, 1, np.pi), bowl(7), 1),              # B's wall at x = 7.5; A's at 7.5 in B: off
+        ((1, 0, np.pi / 2), 0.0, 2),              # a quarter turn about (0.5, 0.5)
+        ((3, 0, np.pi / 2), bowl(2), 1),          # B's wall at (2.5, 0.5); A's at (0.5, 2.5) in B: off
+        ((1e9, 0, 0), 0.0, 0),
+    ]
+    poses = [p for p, _, _ in cases]
+    expected = [e for _, e, _ in cases]
+    expected_walls = [n for _, _, n in cases]
+    assert bowl(7) == pytest.approx(1.0, abs=1e-10)
+    for name in ("taichi", "numpy"):
+        values, _ = make_engine(name, pa, pb, u)(poses)
+        np.testing.assert_allclose(values, expected, rtol=1e-6, atol=1e-7, err_msg=name)
+    assert EnvelopeEngine(pa, pb, u)(poses)[1].tolist() == expected_walls
+    assert NumpyEnvelope(a, pa.blurred, b, pb.blurred, u)(poses)[1].tolist() == expected_walls
+    # the overlap make_engine reports is eq. (6)'s: known cells of B on known cells of A
+    assert make_engine("taichi", pa, pb, u)([(0, 0, 0), (3, 0, 0), (-1, 0, 0)])[1].tolist() == [2, 1, 1]
+    # unknown_cost 0: unknown cells are not compared, as in the paper
+    assert make_engine("taichi", pa, pb, 0.0)([(3, 0, 0), (-2, 0, 0)])[0].tolist() == [0.0, 0.0]
+
+
+def test_grey_walls_are_weighted_by_their_occupancy():
+    a = GridMap(np.array([[0.8, 0.0, 0.0]]), 1.0)
+    b = GridMap(np.array([[0.6]]), 1.0)
+    pa, pb = PreparedMap(a, 1.0, "envelope"), PreparedMap(b, 1.0, "envelope")
+    # pose 0: B's wall (w 0.6) on A's wall (hi 0.8), A's (w 0.8) on B's (hi 0.6)
+    # pose 1: B's wall on A's cell 1 (hi 0.8 exp(-1/2)); A's wall off B
+    expected = [0.6 * 0.2 + 0.8 * 0.4, 0.6 * (1.0 - 0.8 * np.exp(-0.5))]
+    for name in ("taichi", "numpy"):
+        np.testing.assert_allclose(make_engine(name, pa, pb)([(0, 0, 0), (1, 0, 0)])[0], expected, rtol=1e-6)
+    # cells below 0.5 are not walls: a map of them costs nothing
+    faint = GridMap(np.array([[0.49, 0.3]]), 1.0)
+    assert make_engine("taichi", PreparedMap(faint, 1.0, "envelope"), PreparedMap(faint, 1.0, "envelope"))(
+        [(0, 0, 0), (1, 0, 0)])[0].tolist() == [0.0, 0.0]
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. Symmetry, 4. the minimum at the truth
+
+
+def test_swapping_the_maps_and_inverting_the_pose_gives_the_same_value(room_pair, rng):
+    a, b = room_pair
+    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
+    poses = np.vstack([TRUTH, np.array(TRUTH) + np.column_stack([rng.uniform(-0.5, 0.5, (20, 2)),
+                                                                   rng.uniform(-0.2, 0.2, 20)])])
+    for unknown_cost in (0.0, 0.3):
+        e_ab = make_engine("taichi", pa, pb, unknown_cost)(poses)[0]
+        e_ba = make_engine("taichi", pb, pa, unknown_cost)([inverse(p) for p in poses])[0]
+        np.testing.assert_allclose(e_ba, e_ab, rtol=0.02, atol=1e-3)
+        e_ba_np = make_engine("numpy", pb, pa, unknown_cost)([inverse(p) for p in poses])[0]
+        np.testing.assert_allclose(e_ba_np, e_ab, rtol=0.02, atol=1e-3)
+        assert e_ab.max() > 20 * e_ab[0]
+
+
+def test_the_discrepancy_is_lowest_at_the_truth(room_pair):
+    a, b = room_pair
+    engine = make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope"), 0.3)
+    deg = np.radians(1.0)
+    offsets = np.array([(0.1, 0, 0), (-0.1, 0, 0), (0, 0.1, 0), (0, -0.1, 0), (0, 0, deg), (0, 0, -deg),
+                        (0.07, 0.07, 0), (-0.07, 0.07, deg)])
+    values = engine(np.vstack([TRUTH, np.array(TRUTH) + offsets]))[0]
+    assert np.all(values[1:] > values[0] + 10.0), values
+
+
+def test_match_recovers_the_truth_from_nearby_guesses(room_pair):
+    a, b = room_pair
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        direction = rng.normal(size=2)
+        offset = rng.uniform(0.05, 0.3) * direction / np.linalg.norm(direction)
+        guess = np.array(TRUTH) + np.array([offset[0], offset[1], rng.uniform(-0.1, 0.1)])
+        res = tm.match(a, b, guess)
+        assert res.converged, (guess, res)
+        assert np.hypot(*(res.pose[:2] - TRUTH[:2])) <= 2 * 0.05, (guess, res)
+        assert abs(np.degrees(res.pose[2] - TRUTH[2])) <= 0.5, (guess, res)
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. The line-reduced pyramid
+
+
+def one_cell_walls():
+    """16 x 16 free maps holding one one-cell wall each, along either axis, at even and odd rows
+    and columns."""
+    maps = []
+    for k in (0, 5, 6, 15):
+        row = np.zeros((16, 16))
+        row[k, :] = 1.0
+        maps.append((row, np.s_[k // 4, :]))
+        col = np.zeros((16, 16))
+        col[:, k] = 1.0
+        maps.append((col, np.s_[:, k // 4]))
+    return maps
+
+
+@pytest.mark.parametrize("index", range(8))
+def test_line_reduction_keeps_a_one_cell_wall(index):
+    prob, wall_at_level_2 = one_cell_walls()[index]
+    grid = GridMap(prob, 0.05, (-0.4, -0.4))
+    once = coarsen(grid, reduce="line")
+    twice = coarsen(once, reduce="line")
+    assert once.shape == (8, 8) and twice.shape == (4, 4)
+    assert once.resolution == 0.1 and twice.resolution == 0.2 and twice.corner_pose == grid.corner_pose
+    assert np.count_nonzero(once.prob == 1.0) == 8 and np.count_nonzero(once.prob == 0.0) == 56
+    assert np.all(twice.prob[wall_at_level_2] == 1.0)
+    assert np.count_nonzero(twice.prob == 1.0) == 4 and np.count_nonzero(twice.prob == 0.0) == 12
+
+
+def test_line_reduction_fades_a_lone_cell_and_mean_and_max_do_as_documented():
+    prob = np.zeros((8, 8))
+    prob[3, 2] = 1.0
+    grid = GridMap(prob, 0.05)
+    once = coarsen(grid, reduce="line")
+    twice = coarsen(once, reduce="line")
+    assert once.prob[1, 1] == 0.5 and np.count_nonzero(once.prob) == 1
+    assert twice.prob[0, 0] == 0.25 and np.count_nonzero(twice.prob) == 1
+    # mean: a 2 x 2 block holding one wall cell has mean 1/4; a one-cell wall fades to 1/2
+    assert coarsen(grid).prob[1, 1] == 0.25 and coarsen(grid, reduce="mean").prob[1, 1] == 0.25
+    assert coarsen(coarsen(grid)).prob[0, 0] == pytest.approx(1 / 16)
+    wall = np.zeros((8, 8))
+    wall[5, :] = 1.0
+    assert np.all(coarsen(GridMap(wall, 0.05)).prob[2] == 0.5)
+    # max: the lone cell and the wall both stay 1 at every level
+    assert coarsen(coarsen(grid, reduce="max"), reduce="max").prob[0, 0] == 1.0
+    assert np.all(coarsen(GridMap(wall, 0.05), reduce="max").prob[2] == 1.0)
+    # grey cells: the line reduction doubles the mean and caps it at 1
+    grey = GridMap(np.array([[0.2, 0.1], [0.0, 0.1]]), 1.0)
+    assert coarsen(grey, reduce="line").prob[0, 0] == pytest.approx(0.2)
+    assert coarsen(grey, reduce="mean").prob[0, 0] == pytest.approx(0.1)
+    assert coarsen(grey, reduce="max").prob[0, 0] == pytest.approx(0.2)
+
+
+@pytest.mark.parametrize("reduce", ["line", "mean", "max"])
+def test_coarsening_keeps_unknown_unknown(reduce):
+    prob = np.zeros((6, 5))
+    prob[:2, :2] = np.nan                 # a whole block unknown -> unknown
+    prob[2, 2] = np.nan                   # a block with one unknown cell: reduced over the known ones
+    prob[3, 3] = 1.0
+    prob[4:, :] = np.nan                  # the last block row unknown
+    out = coarsen(GridMap(prob, 0.1), reduce=reduce).prob
+    assert out.shape == (3, 3)
+    assert np.isnan(out[0, 0]) and np.all(np.isnan(out[2]))
+    assert np.count_nonzero(np.isnan(out)) == 4
+    expected = {"line": 2.0 / 3.0, "mean": 1.0 / 3.0, "max": 1.0}[reduce]
+    assert out[1, 1] == pytest.approx(expected)
+    assert out[1, 2] == 0.0 and out[0, 1] == 0.0
+
+
+def test_the_envelope_pyramid_uses_the_line_reduction(room_pair):
+    a, _ = room_pair
+    base = PreparedMap(a, 0.1, "envelope")        # holds the coarser levels' grids
+    level = base.level(2)
+    assert np.array_equal(level.grid.prob, coarsen(coarsen(a, reduce="line"), reduce="line").prob, equal_nan=True)
+    assert level.blur_width == 0.1                        # blur_growth 1 by default on PreparedMap
+    growing = PreparedMap(a, 0.1, "envelope", blur_growth=2.0)
+    assert growing.level(2).blur_width == pytest.approx(0.4)
+    gaussian_base = PreparedMap(a, 0.1, "gaussian")
+    gaussian = gaussian_base.coarser()
+    assert np.array_equal(gaussian.grid.prob, coarsen(a).prob, equal_nan=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. Trinary evidence
+
+
+def test_trinary_thresholds_are_map_savers():
+    p = np.array([[0.0, 0.1, 0.195, 0.196, 0.3, 0.5, 0.65, 0.651, 0.9, 1.0, np.nan]])
+    out = trinary(GridMap(p, 0.05, (1.0, 2.0, 0.5))).prob
+    expected = [0.0, 0.0, 0.0, np.nan, np.nan, np.nan, np.nan, 1.0, 1.0, 1.0, np.nan]
+    np.testing.assert_array_equal(out[0], expected)
+    custom = trinary(GridMap(p, 0.05), occupied=0.5, free=0.3).prob[0]
+    np.testing.assert_array_equal(custom, [0.0, 0.0, 0.0, 0.0, np.nan, np.nan, 1.0, 1.0, 1.0, 1.0, np.nan])
+    already = GridMap(np.array([[0.0, 1.0, np.nan]]), 0.1)
+    np.testing.assert_array_equal(trinary(already).prob, already.prob)
+
+
+def test_trinary_evidence_is_the_default_and_changes_the_prepared_map(rng):
+    grid = GridMap(rng.random((30, 40)), 0.05)
+    assert MatchOptions().evidence == "trinary"
+    matcher = Matcher()
+    default = matcher.prepare(grid)
+    probability = Matcher(MatchOptions(evidence="probability")).prepare(grid)
+    values = default.lower.prob
+    assert set(np.unique(values[~np.isnan(values)]).tolist()) == {0.0, 1.0}
+    assert np.isnan(values).any()
+    assert np.array_equal(probability.lower.prob, grid.prob)
+    assert not np.array_equal(default.lower.prob, probability.lower.prob, equal_nan=True)
+    # trinary: walls are the cells above 0.65; probability: those at 0.5 or more
+    assert len(default.walls[0]) == np.count_nonzero(grid.prob > 0.65)
+    assert len(probability.walls[0]) == np.count_nonzero(grid.prob >= 0.5)
+    assert np.array_equal(default.grid.prob, trinary(grid).prob, equal_nan=True)
+    with pytest.raises(InvalidOptionError):
+        PreparedMap(grid, 0.1, "envelope", evidence="binary")
+
+
+# ---------------------------------------------------------------------------------------------
+# 7. Options
+
+
+def test_bilinear_needs_a_dense_blur(room_pair):
+    a, b = room_pair
+    with pytest.raises(InvalidOptionError, match="bilinear"):
+        MatchOptions(interpolation="bilinear")
+    with pytest.raises(InvalidOptionError, match="bilinear"):
+        tm.match(a, b, TRUTH, interpolation="bilinear")
+    paper = MatchOptions.paper(interpolation="bilinear")
+    assert paper.blur_kind == "gaussian" and paper.method == "bfgs"
+    engine = make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope"))
+    with pytest.raises(InvalidOptionError, match="bilinear"):
+        engine.bilinear(np.array([TRUTH]))
+    with pytest.raises(InvalidOptionError, match="same kind of blur"):
+        make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "gaussian"))
+
+
+@pytest.mark.parametrize("field, value", [
+    ("unknown_cost", -0.1), ("unknown_cost", 1.5), ("unknown_cost", float("nan")), ("unknown_cost", "0.3"),
+    ("unknown_cost", True), ("unknown_cost", None),
+    ("blur_growth", 0.5), ("blur_growth", 17.0), ("blur_growth", float("inf")), ("blur_growth", "2"),
+    ("evidence", "binary"), ("evidence", None), ("evidence", "Trinary"),
+])
+def test_bad_envelope_options_are_refused(field, value):
+    with pytest.raises(InvalidOptionError, match=field):
+        MatchOptions(**{field: value})
+
+
+@pytest.mark.parametrize("field, value", [("unknown_cost", 0.0), ("unknown_cost", 1.0), ("unknown_cost", 0),
+                                          ("blur_growth", 1.0), ("blur_growth", 16), ("evidence", "probability")])
+def test_edge_values_of_envelope_options_are_accepted(field, value):
+    assert getattr(MatchOptions(**{field: value}), field) == value
+
+
+def test_the_defaults_and_the_paper_preset():
+    default, paper = MatchOptions(), MatchOptions.paper()
+    assert (default.blur_kind, default.blur, default.blur_growth, default.unknown_cost, default.evidence) == \
+        ("envelope", 0.1, 2.0, 0.3, "trinary")
+    assert (paper.blur_kind, paper.blur, paper.blur_growth, paper.unknown_cost, paper.evidence) == \
+        ("gaussian", 0.5, 1.0, 0.0, "probability")
+    assert dataclasses.replace(paper, blur_kind="envelope").blur_kind == "envelope"
+
+
+# ---------------------------------------------------------------------------------------------
+# 8. Determinism
+
+
+def test_the_same_match_twice_gives_bit_identical_poses(room_pair):
+    a, b = room_pair
+    guess = (0.3, -0.2, 0.1)
+    first = tm.match(a, b, guess)
+    again = tm.match(a, b, guess)
+    fresh = Matcher().match(a, b, guess)
+    for other in (again, fresh):
+        assert first.pose.tobytes() == other.pose.tobytes()
+        assert first.discrepancy == other.discrepancy and first.cost == other.cost
+        assert first.information.tobytes() == other.information.tobytes()
+    engine = make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope"), 0.3)
+    poses = np.array(TRUTH) + np.random.default_rng(1).normal(scale=0.1, size=(50, 3))
+    assert engine(poses)[0].tobytes() == engine(poses)[0].tobytes()
