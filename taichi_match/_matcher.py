@@ -17,7 +17,7 @@ import numpy as np
 
 from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
-from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, hessian_stencil, prior,
+from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, prior,
                     prior_hessian, prior_values)
 from ._covariance import covariance_floor, covariance_from_hessian
 from ._errors import InvalidMapError, InvalidOptionError

@@ -51,8 +51,11 @@ def _demo(args):
     print(f"status        {res.status.name}: {res.message}")
     print(f"iterations    {res.iterations} ({res.launches} kernel launches, {res.evaluations} poses evaluated)")
     print(f"overlap       {res.overlap} cells compared, discrepancy {res.discrepancy:.2f}")
-    print("covariance (x, y, theta):")
-    print(res.covariance)
+    ev = res.evidence
+    print(f"verdict       {'ACCEPTED' if res.accepted else 'NOT ACCEPTED'}: {ev.walls_compared} walls compared, "
+          f"{100 * ev.wall_agreement:.0f} % meet walls, {100 * ev.wall_conflict:.0f} % on free space")
+    print("calibrated covariance (x, y, theta):")
+    print(res.calibrated_covariance)
     for d in res.degenerate:
         dx, dy, dt = np.round(d, 4) + 0.0
         print(f"degenerate direction (no information): ({dx:+.4f}, {dy:+.4f}, {dt:+.4f}) in (x, y, theta)")
@@ -64,7 +67,7 @@ def _demo(args):
             print(f"picture       {args.plot}")
         except ImportError as exc:
             print(f"picture       not written: {exc}")
-    return 0 if res.converged else 1
+    return 0 if res.accepted else 1
 
 
 def _reproduce(args):
