@@ -15,7 +15,7 @@ __all__ = ["covariance_from_hessian", "covariance_floor", "FLOOR_CELLS"]
 # The standard deviation, in cells of A, of the error that the Hessian cannot see: e is flat
 # within a cell (nearest-cell lookups), so the minimum is a plateau about a cell wide, and the
 # prior parks the pose anywhere on it. Fitted with CALIBRATED_COVARIANCE_SCALE (bench/TUNING.md).
-FLOOR_CELLS = 0.3
+FLOOR_CELLS = 0.1
 
 
 def covariance_from_hessian(hessian, rotation_scale, *, scale=1.0, degenerate_rtol=1e-3,

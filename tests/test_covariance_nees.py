@@ -187,16 +187,14 @@ def test_accepted_results_are_within_a_decimetre_and_a_degree(matches):
         assert np.hypot(e[0], e[1]) <= 0.1 and abs(e[2]) <= np.deg2rad(1.0), e
 
 
-# Measured (seeded, deterministic): 40 of 40 accepted; mean NEES 0.333 against the band
-# 2.289 .. 3.805 for n = 40. The calibrated covariance is conservative on these maps: error rms
-# 5.5 / 5.3 mm and 2.0 mrad against predicted sd 16.8 / 19.8 mm and 5.7 mrad. Its floor alone
-# (0.3 cells = 15 mm at B's centroid) is about three times the errors (NEES with the floor alone
-# 0.40), while 2 H(e)^-1 alone gives 2.13. So what holds, and is asserted: not optimistic (the
-# mean at most the band's upper end, each axis's error rms at most the mean predicted sd), and not
-# absurdly conservative (mean NEES at least LOWER_NEES, i.e. predicted sd at most about 4.5 times
-# the errors; variants of this scene - range noise 0.01 to 0.05 m, 20 scans a submap, 0.10 m
-# between scans, 160 guesses - gave 0.30 to 0.62).
-LOWER_NEES = 0.15
+# Measured (seeded, deterministic), with the published (scale, floor) = (2.0, 0.1 cell): 40 of 40
+# accepted; mean NEES 1.31 against the band 2.289 .. 3.805 for n = 40: error rms 5.5 / 5.3 mm and
+# 2.0 mrad against predicted sd 8.3 / 9.4 mm and 2.9 mrad, conservative by about 1.5 in sd
+# (2 H(e)^-1 alone gives 2.13; with the 0.3-cell floor fitted to the reference trajectories of
+# shared/logs it was 0.33). So what holds, and is asserted: not optimistic (the mean at most the
+# band's upper end, each axis's error rms at most the mean predicted sd), and not absurdly
+# conservative (mean NEES at least LOWER_NEES).
+LOWER_NEES = 0.5
 
 
 def test_calibrated_covariance_is_not_optimistic_nor_absurdly_conservative(summary):
@@ -207,9 +205,9 @@ def test_calibrated_covariance_is_not_optimistic_nor_absurdly_conservative(summa
     assert mean >= LOWER_NEES, f"absurdly conservative: mean NEES {mean:.3f} < {LOWER_NEES} (n = {n})"
 
 
-@pytest.mark.xfail(strict=True, reason="the calibrated covariance is about 3x conservative in sd on "
-                                       "simulated submaps built from exact poses (mean NEES 0.33): "
-                                       "its 0.3-cell floor exceeds the errors")
+@pytest.mark.xfail(strict=True, reason="the calibrated covariance is about 1.5x conservative in sd on "
+                                       "simulated submaps built from exact poses (mean NEES 1.31, band "
+                                       "2.29-3.81): fitted on real-map crops, where it is 2.96")
 def test_mean_nees_lies_in_the_chi_square_band(summary):
     band = summary["band"]
     assert band[0] <= summary["mean_nees"] <= band[1]
