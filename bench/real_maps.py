@@ -36,6 +36,7 @@ import numpy as np
 
 import taichi_match as tm
 from taichi_match import io
+from taichi_match._covariance import FLOOR_CELLS
 from taichi_match.merge import sample
 
 MAPS = Path(__file__).resolve().parents[2] / "shared" / "maps"
@@ -151,6 +152,8 @@ def main():
                         help="a MatchOptions field for taichi_match, e.g. --option prior_weight=30")
     parser.add_argument("--out", help="also write the table (markdown) to this file")
     parser.add_argument("--append", action="store_true", help="append to --out instead of replacing it")
+    parser.add_argument("--records", help="write one JSON line per match from a good guess here (for "
+                                          "bench/calibrate_covariance.py)")
     args = parser.parse_args()
     options = {}
     for item in args.option:
@@ -170,7 +173,7 @@ def main():
     rng = np.random.default_rng(args.seed)
     matcher = tm.Matcher(**options)
     rows, totals = [], {"ours": [], "ecc": []}
-    verdicts, nees_all = [], []
+    verdicts, nees_all, records = [], [], []
     bad_rng = np.random.default_rng(args.seed + 1000)
     for name, grid in load_maps().items():
         stats = {"ours": [], "ecc": []}
@@ -182,6 +185,11 @@ def main():
                 e_t, e_r = errors(res.pose, truth)
                 ok = e_t < 2 * grid.resolution and e_r < np.radians(1.0)
                 verdicts.append((ok, res.accepted))
+                error = [float(res.pose[0] - truth[0]), float(res.pose[1] - truth[1]),
+                         float((res.pose[2] - truth[2] + np.pi) % (2 * np.pi) - np.pi)]
+                records.append(dict(map=name, correct=bool(ok), accepted=bool(res.accepted), error=error,
+                                    degenerate=len(res.degenerate), covariance=res.covariance.tolist(),
+                                    floor=(res.covariance_floor / FLOOR_CELLS**2).tolist()))
                 if ok and not len(res.degenerate):
                     err = np.array([res.pose[0] - truth[0], res.pose[1] - truth[1],
                                     (res.pose[2] - truth[2] + np.pi) % (2 * np.pi) - np.pi])
@@ -243,6 +251,12 @@ def main():
                 f"are accepted), over {len(verdicts)} matches with as many bad guesses (1.5-3 m, 20-40 deg)  ")
     print()
     print("\n".join(text))
+    if args.records:
+        import json
+
+        with open(args.records, "w") as f:
+            for r in records:
+                f.write(json.dumps(r) + "\n")
     if args.out:
         out = Path(args.out)
         head = "" if args.append and out.exists() else ("# Real-map evaluation\n\nSee the docstring of "

@@ -40,6 +40,7 @@ from scipy import stats
 
 import taichi_match as tm
 from taichi_match import compose, inverse, wrap_angle
+from taichi_match._covariance import FLOOR_CELLS
 from taichi_match.logs import read_carmen, read_tum
 from taichi_match.scans import scans_to_grid, trinary
 
@@ -205,7 +206,7 @@ def main():
                                         walls=ev.walls_compared, agreement=ev.wall_agreement,
                                         conflict=ev.wall_conflict, uncertainty=ev.uncertainty,
                                         degenerate=len(res.degenerate), covariance=res.covariance.tolist(),
-                                        floor=(res.covariance_floor / 0.6**2).tolist(),
+                                        floor=(res.covariance_floor / FLOOR_CELLS**2).tolist(),
                                         error=[float(res.pose[0] - truth[0]), float(res.pose[1] - truth[1]),
                                                float(wrap_angle(res.pose[2] - truth[2]))]))
                     if have_ecc and guess_kind == "good":

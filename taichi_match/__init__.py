@@ -12,8 +12,8 @@ import logging
 
 
 from ._bfgs import Status
-from ._errors import (EngineError, InvalidMapError, InvalidOptionError, InvalidPoseError, MapFileError,
-                      MapFormatError, TaichiMatchError)
+from ._errors import (EngineError, InvalidMapError, InvalidOptionError, InvalidPoseError, LogFileError,
+                      LogFormatError, MapFileError, MapFormatError, TaichiMatchError)
 from ._grid import GridMap
 from ._matcher import CALIBRATED_COVARIANCE_SCALE, Matcher, MatchOptions, MatchResult, match
 from ._prepared import PreparedMap, make_engine
@@ -22,7 +22,7 @@ from ._se2 import as_poses, compose, inverse, transform_points, wrap_angle
 __all__ = [
     "GridMap", "discrepancy", "match", "Matcher", "MatchOptions", "MatchResult", "Status", "CALIBRATED_COVARIANCE_SCALE",
     "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
-    "MapFileError", "MapFormatError",
+    "MapFileError", "MapFormatError", "LogFileError", "LogFormatError",
     "compose", "inverse", "transform_points", "wrap_angle",
 ]
 

@@ -19,7 +19,7 @@ from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, prior,
                     prior_hessian, prior_values)
-from ._covariance import covariance_floor, covariance_from_hessian
+from ._covariance import centroid_metric, covariance_floor, covariance_from_hessian
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
 from ._newton import minimize_newton
@@ -55,18 +55,25 @@ PAPER_OPTIONS = dict(blur_kind="gaussian", blur=0.5, blur_growth=1.0, unknown_co
 class MatchOptions:
     """Settings of a match. Units: metres, radians; K in discrepancy units per metre.
 
-    blur : width of the blur (sec. 3.2), metres: the Gaussian's standard deviation, or the ramp's
-        length for ``blur_kind="ramp"``.
-    blur_kind : "gaussian" (normalised convolution over known cells) or "ramp" (see ``_blur``).
-    prior_weight : K of eq. (8), discrepancy (cells x probability) per metre of ||r - r0||;
-        None (the default) scales it with B: K = prior_weight_per_cell * (known cells of B).
+    blur : width of the blur (sec. 3.2) on the given maps, metres: the envelope's or the Gaussian's
+        standard deviation, or the ramp's length for ``blur_kind="ramp"``.
+    blur_kind : "envelope" (the default: the envelope discrepancy of ``_envelope``, walls of each
+        map against the other's free space) or the paper's |p_A - p_B| (eq. 6) on a "gaussian"
+        (normalised convolution over known cells) or "ramp" blur (see ``_blur``).
+    blur_growth : the blur of each coarser pyramid level is this many times wider.
+    unknown_cost : what a wall landing on an unknown cell inside the other map's grid pays in the
+        envelope discrepancy (0: not compared, as the paper treats unknown cells).
+    evidence : how grey probabilities enter: "trinary" (as ROS map_saver writes them: p > 0.65
+        occupied, p < 0.196 free, else unknown; ``_grid.trinary``) or "probability" (as given).
+    prior_weight : K of eq. (8), discrepancy units per metre of ||r - r0||; None (the default)
+        scales it with B: K = prior_weight_per_cell * (known cells of B).
     prior_weight_per_cell : K per known cell of B when ``prior_weight`` is None. The discrepancy
-        is a sum over B's cells, so a fixed K would weigh the prior ten times more on a map ten
-        times smaller; 8.6e-4 gives K = 100 on the paper's corridor.
+        grows with the maps, so a fixed K would weigh the prior ten times more on a map ten times
+        smaller; 8.6e-4 gives K = 100 on the paper's corridor.
     rotation_scale : L of eq. (7), metres per radian.
     step : finite-difference step eps for x and y (eq. 10-12), metres; None = A's resolution.
-    rotation_step : eps for theta, radians; None = step / R, where R is the rms distance of B's
-        known cells from B's frame origin (a rotation by eps then moves a typical cell by eps_xy).
+    rotation_step : eps for theta, radians, a rotation about B's centroid; None = step / S, where S
+        is the rms distance of B's known cells from their centroid (a typical cell moves by eps).
     max_step : longest step (BFGS) or largest trust region (Newton) in scaled units (metres),
         None = max(blur / 2, 4 * step).
     xtol : the optimiser stops when a step (BFGS: taken; Newton: proposed by its model) is shorter
@@ -218,10 +225,11 @@ class MatchResult:
     covariance : 3x3 in (x, y, theta) units, ``covariance_scale * H(e)^-1`` with degenerate
         directions given a very large variance (eq. 11).
     information : the 3x3 numeric Hessian of e at ``pose`` (eq. 12), unmodified.
+    covariance_floor : the 3x3 covariance that ``calibrated_covariance`` adds (``_covariance``).
     degenerate : (k, 3) unit vectors in (x, y, theta) along which the maps give (almost) no
         information, e.g. (1, 0, 0) in a corridor along x.
     cost : h at ``pose`` (eq. 8), on the blurred maps; ``prior_weight`` is the K it used.
-    discrepancy : e at ``pose`` (eq. 6), on the blurred maps.
+    discrepancy : e at ``pose``: eq. (6) on the blurred maps, or the envelope discrepancy.
     overlap : number of known cells of B that land on known cells of A at ``pose``.
     initial_pose, iterations, evaluations (poses evaluated), launches (batched evaluations),
     converged, status, message, seconds (wall clock of the whole match).
@@ -295,7 +303,7 @@ class Matcher:
     def __init__(self, options: Optional[MatchOptions] = None, **overrides):
         options = options if options is not None else MatchOptions()
         self.options = _with(options, overrides)
-        self._cache = weakref.WeakKeyDictionary()      # GridMap -> {(blur, kind): PreparedMap}
+        self._cache = weakref.WeakKeyDictionary()      # GridMap -> {(blur, kind, growth, evidence): PreparedMap}
         self._lock = threading.Lock()
 
     def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None,
@@ -334,8 +342,8 @@ class Matcher:
                 prep_a, prep_b, opts, r0, full_weight, counter)
         if overlap == 0 and status.converged:
             status = Status.SEPARATED
-        covariance, degenerate = covariance_from_hessian(information, prep_b.radius,
-                                                         scale=opts.covariance_scale)
+        metric = centroid_metric(prep_b.centroid, prep_b.spread, r[2])
+        covariance, degenerate = covariance_from_hessian(information, metric, scale=opts.covariance_scale)
         if len(degenerate) == 3 and status.converged:
             status = Status.NO_INFORMATION
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
@@ -390,7 +398,9 @@ class Matcher:
         for level in range(top, -1, -1):                  # coarse to fine; level 0: the given maps
             cost = _LevelCost(prep_a.level(level), prep_b.level(level), prep_b, opts, r0, full_weight, counter)
             eps = cost.steps[0]
-            h_start, grad_start, counts = cost.value_and_gradient(r, count="first")
+            # the overlap is needed at the start (is there any?) and at the end (the result's)
+            h_start, grad_start, counts = cost.value_and_gradient(
+                r, count="first" if level == top or cost.counts_free else "none")
             z, step = cost.to_z(r), 4.0 * eps
             if level == top and counts[0] == 0:
                 return r0, Status.NO_OVERLAP, 0, h_start, 0.0, 0, np.zeros((3, 3))
@@ -409,7 +419,7 @@ class Matcher:
             z, cost_value, _ = polish(cost.batch, z, h_start, step=step, xtol=opts.step_tolerance * eps,
                                       max_step=cost.max_step)
             r = cost.to_r(z)
-        # eq. (11)-(12) on the given maps, one launch
+        # eq. (11)-(12) on the given maps, one launch (two when counting the overlap takes its own)
         _, _, _, (e, overlap, information) = cost.value_gradient_hessian(cost.to_z(r), count="first")
         return r, status, nit, cost_value, e, overlap, information
 
@@ -426,7 +436,8 @@ class _LevelCost:
     """h (eq. 8) on one level of the pyramid, as the optimisers see it.
 
     Poses r are (x, y, theta); the optimisers work in z = M r, all in metres (see ``__init__``),
-    so that a unit step moves a typical cell of B by about a metre whichever way it goes. e is a sum over B's cells, so K follows the number of cells at this level.
+    so that a unit step moves a typical cell of B by about a metre whichever way it goes. K follows
+    the number of B's known cells at this level.
     With ``interpolation="nearest"`` (the paper's e) derivatives come from the stencils of
     eq. (10)-(12); with "bilinear" the gradient is analytic (one pose) and the Hessian is the
     central difference of gradients at +-1 step on each axis (7 poses).
@@ -446,9 +457,7 @@ class _LevelCost:
         # at a corner, tens of metres away): there a rotation about the origin is mostly a
         # translation, and a trust region in (x, y, theta * radius) crawled along the valley of
         # rotations about the map's own centre (a self-match from 0.02 rad stopped 0.4 deg off).
-        cx, cy = prep_b.centroid
-        c, s = np.cos(r0[2]), np.sin(r0[2])
-        self._to_z = np.array([[1.0, 0.0, -s * cx - c * cy], [0.0, 1.0, c * cx - s * cy], [0.0, 0.0, prep_b.spread]])
+        self._to_z = centroid_metric(prep_b.centroid, prep_b.spread, r0[2])
         self._from_z = np.linalg.inv(self._to_z)
         # the stencils' steps in z: one cell of A along x and y, and a rotation about B's centroid
         # that moves a typical cell of B by one cell (the derivatives of e then come in z directly;

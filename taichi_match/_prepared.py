@@ -3,8 +3,8 @@
 A prepared map can play either role: as A it is a float32 grid padded with a ring of unknown
 cells (``_kernels.PAD`` wide); as B it is a float32 grid plus the list of rows holding known cells
 and, per row, the column range that holds them, so the kernels skip unknown rows and margins.
-Unknown is -1. With the "envelope" blur it holds instead the conflict grid and the occupied cells
-that the envelope discrepancy (``_envelope``) uses, in either role.
+Unknown is -1. With the "envelope" blur these hold the map itself (to count the overlap), and
+the conflict grid and the occupied cells that the envelope discrepancy (``_envelope``) uses.
 """
 
 import weakref
@@ -166,7 +166,8 @@ class EnvelopeDiscrepancy:
         return self._dense.overlap(poses)
 
     def hessian_stencil(self, pose, steps, count="first", basis=None):
-        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps, basis)`` (one launch)."""
+        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps, basis)`` (one launch, and one
+        more for the overlap unless ``count`` is "none")."""
         return self(hessian_stencil(pose, steps, basis), count)
 
     def bilinear(self, poses):

@@ -4,6 +4,7 @@ from typing import Literal
 
 import numpy as np
 
+from ._errors import InvalidOptionError
 from ._grid import GridMap
 
 __all__ = ["coarsen"]
@@ -17,7 +18,7 @@ def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line
     then 1/4 ...), where the mean fades both and the maximum keeps both. The corner pose is kept; a
     last partial row or column is reduced over the cells it has."""
     if reduce not in ("mean", "max", "line"):
-        raise ValueError(f"reduce must be 'mean', 'max' or 'line'; got {reduce!r}")
+        raise InvalidOptionError(f"reduce must be 'mean', 'max' or 'line'; got {reduce!r}")
     rows, cols = grid.shape
     r2, c2 = -(-rows // factor), -(-cols // factor)
     padded = np.full((r2 * factor, c2 * factor), np.nan)

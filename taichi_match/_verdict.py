@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ._covariance import centroid_metric
 from ._se2 import inverse, transform_points
 
 __all__ = ["Evidence", "evidence", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
@@ -95,9 +96,7 @@ def evidence(walls_a: WallDistance, walls_b: WallDistance, pose, covariance, deg
 
 def _uncertainty(covariance, degenerate, theta, centroid, spread):
     """The largest standard deviation, metres, outside the degenerate directions."""
-    c, s = np.cos(theta), np.sin(theta)
-    cx, cy = centroid
-    m = np.array([[1.0, 0.0, -s * cx - c * cy], [0.0, 1.0, c * cx - s * cy], [0.0, 0.0, spread]])
+    m = centroid_metric(centroid, spread, theta)
     cov = m @ np.asarray(covariance) @ m.T
     if len(degenerate):
         dirs = np.asarray(degenerate) @ m.T

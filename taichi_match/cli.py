@@ -125,7 +125,8 @@ def _align(args):
             "information": res.information.tolist(), "degenerate": res.degenerate.tolist(),
             "accepted": bool(res.accepted), "evidence": {
                 "walls_compared": res.evidence.walls_compared, "wall_agreement": res.evidence.wall_agreement,
-                "wall_conflict": res.evidence.wall_conflict, "uncertainty_m": res.evidence.uncertainty},
+                "wall_conflict": res.evidence.wall_conflict,
+                "uncertainty_m": res.evidence.uncertainty if np.isfinite(res.evidence.uncertainty) else None},
             "status": res.status.name, "converged": bool(res.converged), "message": res.message,
             "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
             "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
@@ -143,7 +144,9 @@ def _align(args):
         print(np.array2string(cov, precision=6))
         for d in res.degenerate:
             print("degenerate direction:", np.round(d, 4) + 0.0)
-    if args.g2o is not None:
+    if args.g2o is not None and not res.accepted:
+        print("taichi-match: the match is not accepted: no g2o edge written", file=sys.stderr)
+    elif args.g2o is not None:
         info = np.linalg.inv(cov)
         ids = args.g2o
         print(f"EDGE_SE2 {ids[0]} {ids[1]} {res.pose[0]:.6f} {res.pose[1]:.6f} {res.pose[2]:.6f} "
@@ -208,7 +211,8 @@ def main(argv=None):
                        help="the discrepancy: 'envelope' (default) or the paper's |p_A - p_B| on a 'gaussian' "
                             "or 'ramp' blur")
     align.add_argument("--interpolation", choices=("nearest", "bilinear"),
-                       help="lookup in A: nearest cell (the paper's, default) or bilinear (slower, finer)")
+                       help="lookup in A: nearest cell (the paper's, default) or bilinear (slower, finer; "
+                            "with --blur-kind gaussian or ramp only)")
     align.add_argument("--optimizer", choices=("newton", "bfgs"), help="default: newton (nearest), bfgs (bilinear)")
     align.add_argument("--prior-weight", type=float, help="K of eq. (8)")
     align.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")

@@ -80,13 +80,13 @@ def run_row(matcher, grid, row: TableRow, *, trials=100, seed=0, progress=None):
                      float(seconds.mean()), float(np.median(seconds)), initial, final, results)
 
 
-def surface(a: PreparedMap, b: PreparedMap, xs, ys, *, theta=0.0, prior=None, engine="taichi"):
+def surface(a: PreparedMap, b: PreparedMap, xs, ys, *, theta=0.0, prior=None, engine="taichi", unknown_cost=0.0):
     """e(A, B, (x, y, theta)) over the grid ys x xs (rows follow y), one launch per row of poses.
 
     ``a`` and ``b`` are prepared maps (blurred or not); with ``prior = (r0, K, L)`` the surface is
-    h = e + K ||r - r0|| (eq. 8).
+    h = e + K ||r - r0|| (eq. 8). ``unknown_cost`` applies to the envelope discrepancy.
     """
-    evaluate = make_engine(engine, a, b)
+    evaluate = make_engine(engine, a, b, unknown_cost)
     xs = np.asarray(xs, dtype=np.float64)
     out = np.empty((len(ys), len(xs)))
     for i, y in enumerate(ys):

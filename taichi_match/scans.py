@@ -136,9 +136,12 @@ def count_traversals(starts, ends, hit, origin, resolution, shape, engine: Liter
         rows, cols = _cells_of_segment(u0[k], v0[k], u1[k], v1[k])
         if hit[k]:
             end_row, end_col = int(np.floor(v1[k])), int(np.floor(u1[k]))
-            hits[end_row, end_col] += 1
+            if 0 <= end_row < shape[0] and 0 <= end_col < shape[1]:
+                hits[end_row, end_col] += 1
             free = (rows != end_row) | (cols != end_col)
             rows, cols = rows[free], cols[free]
+        inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])    # as the kernel: skip
+        rows, cols = rows[inside], cols[inside]
         cells = np.unique(rows * shape[1] + cols)
         np.add.at(misses.reshape(-1), cells, 1)
     return hits, misses

@@ -6,7 +6,7 @@ from taichi_match._covariance import covariance_from_hessian
 
 def test_regular_hessian_inverts_exactly():
     h = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 0.5], [0.0, 0.5, 2.0]])
-    cov, degenerate = covariance_from_hessian(h, rotation_scale=2.0)
+    cov, degenerate = covariance_from_hessian(h, metric=2.0)
     assert np.allclose(cov, np.linalg.inv(h))
     assert degenerate.shape == (0, 3)
 
@@ -19,7 +19,7 @@ def test_scale_multiplies_the_covariance():
 
 def test_corridor_like_singular_hessian_gives_huge_finite_variance_along_the_free_axis():
     h = np.diag([0.0, 4.0e6, 9.0e7])
-    cov, degenerate = covariance_from_hessian(h, rotation_scale=3.0)
+    cov, degenerate = covariance_from_hessian(h, metric=3.0)
     assert np.all(np.isfinite(cov))
     assert cov[1, 1] == pytest.approx(0.25e-6) and cov[2, 2] == pytest.approx(1 / 9.0e7)
     assert cov[0, 0] > 1e6 * cov[1, 1]
@@ -45,3 +45,18 @@ def test_degenerate_direction_is_reported_in_pose_units():
     _, degenerate = covariance_from_hessian(h, 5.0)
     assert len(degenerate) == 2
     assert np.allclose(np.abs(degenerate) @ [0, 1, 0], 0.0)
+
+
+def test_a_rotation_well_constrained_about_a_far_centroid_is_not_degenerate():
+    # B's cells 1.5 m around a centroid 41 m from B's frame origin (a ROS map's corner): a Hessian
+    # isotropic in the centroid's coordinates. Judged with theta scaled by the 41 m radius about the
+    # origin, the rotation about the centroid looked some 3000 times weaker and was flagged degenerate.
+    from taichi_match._covariance import centroid_metric
+
+    m = centroid_metric((40.0, 10.0), 1.5, 0.2)
+    h = m.T @ (1e4 * np.eye(3)) @ m                 # the Hessian in (x, y, theta)
+    cov, degenerate = covariance_from_hessian(h, metric=m)
+    assert degenerate.shape == (0, 3)
+    assert np.allclose(cov, np.linalg.inv(h), rtol=1e-6)
+    _, degenerate_old = covariance_from_hessian(h, metric=float(np.hypot(40.0, 10.0)))
+    assert len(degenerate_old) == 1                 # what the origin-based scaling reported
