@@ -68,11 +68,17 @@ class AffineMap:
 
 def pose_features(poses, inverse=False):
     """(N, 5) rows (cos theta, sin theta, x, y, 1) of the poses r (N, 3), or of r^-1."""
-    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    out = np.empty((len(poses), 5))
+    c, s = np.cos(poses[:, 2], out=out[:, 0]), np.sin(poses[:, 2], out=out[:, 1])
     x, y = poses[:, 0], poses[:, 1]
     if inverse:                                  # r^-1 = (-R^T t, -theta)
-        return np.column_stack([c, -s, -(c * x + s * y), s * x - c * y, np.ones(len(poses))])
-    return np.column_stack([c, s, x, y, np.ones(len(poses))])
+        out[:, 2] = -(c * x + s * y)
+        out[:, 3] = s * x - c * y
+        out[:, 1] = -s
+    else:
+        out[:, 2], out[:, 3] = x, y
+    out[:, 4] = 1.0
+    return out
 
 
 # ---------------------------------------------------------------------------------------------

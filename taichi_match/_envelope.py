@@ -152,9 +152,8 @@ class EnvelopeEngine:
 def _finite(affine):
     """Poses that put a map millions of cells away are sent to the unknown ring (u = v = 0): the
     kernel converts coordinates to int32, and every such point is off the map either way."""
-    far = np.abs(affine[:, 2::3]).max(axis=1) >= 1e7
-    if far.any():
-        affine[far] = 0.0
+    if np.abs(affine[:, 2::3]).max() >= 1e7:
+        affine[np.abs(affine[:, 2::3]).max(axis=1) >= 1e7] = 0.0
     return affine
 
 
