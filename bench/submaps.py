@@ -25,6 +25,7 @@ median time per match; ECC's success from the same good guesses.
     python bench/submaps.py                         # all logs, table to stdout
     python bench/submaps.py --out bench/SUBMAPS.md --records /tmp/submaps.jsonl
     python bench/submaps.py --logs aces csail --no-ecc
+    python bench/submaps.py --protocol-table /tmp/submaps.jsonl >> bench/SUBMAPS.md   # per log, issue protocol
 """
 
 import argparse
@@ -154,6 +155,27 @@ def pct(pair):
     return f"{100.0 * k / n:.1f} ({k}/{n})" if n else "-"
 
 
+def protocol_table(path):
+    """Per log and grid type, on consecutive and loop pairs only (the issue's protocol), from the
+    records of a run: verdict precision and recall over all guesses, mean NEES (as it is and with
+    the reference's error) over correct good and wide matches."""
+    records = [json.loads(line) for line in open(path)]
+    records = [r for r in records if r["pair"] != "disjoint"]
+    keys = sorted({(r["log"], r["grids"]) for r in records}) + [("all", "both")]
+    lines = ["", f"## Consecutive and loop pairs per log (the issue's protocol), from `{Path(path).name}`", "",
+             "| log | grids | good, correct | precision | recall | mean NEES (band, n) | with the reference's error |",
+             "|---|---|---|---|---|---|---|"]
+    for log, grids in keys:
+        rows = [r for r in records if log == "all" or (r["log"] == log and r["grids"] == grids)]
+        s = summarise(rows, [])
+        good = [r["correct"] for r in rows if r["guess"] == "good"]
+        mean, n = s["nees"]
+        lo, hi = nees_band(n) if n else (float("nan"), float("nan"))
+        lines.append(f"| {log} | {grids} | {pct((sum(good), len(good)))} | {pct(s['precision'])} | {pct(s['recall'])} "
+                     f"| {mean:.2f} ({lo:.2f}-{hi:.2f}, {n}) | {s['nees_ref'][0]:.2f} |")
+    return "\n".join(lines)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--logs", nargs="*", help="log names (default: all in ../shared/logs)")
@@ -165,7 +187,12 @@ def main():
     parser.add_argument("--records", help="write one JSON line per match here")
     parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                         help="a MatchOptions field, e.g. --option unknown_cost=0")
+    parser.add_argument("--protocol-table", metavar="RECORDS",
+                        help="only print the per-log table of the issue's protocol from a run's records")
     args = parser.parse_args()
+    if args.protocol_table:
+        print(protocol_table(args.protocol_table))
+        return
     if not LOGS.is_dir():
         raise SystemExit(f"{LOGS} not found: the laser logs live in ../shared/logs")
     options = {}
@@ -259,6 +286,9 @@ def main():
                     f"| {pct(s['recall'])} | {s['ms']:.1f} | {pct(s['ecc'])} |")
     print()
     print("\n".join(text))
+    if args.records:
+        text.append(protocol_table(args.records))
+        print(text[-1])
     if args.out:
         Path(args.out).write_text("\n".join(text) + "\n")
 
