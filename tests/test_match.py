@@ -42,8 +42,8 @@ def test_paper_table_1_on_the_corridor(corridor_map, matcher, ranges, required):
         res = matcher.match(corridor_map, corridor_map, r0)
         ok += abs(res.pose[1]) < 0.025 and abs(res.pose[2]) < 0.045
         # the paper: the closest pose along the corridor; the envelope discrepancy's coarse levels
-        # (0.1 m cells) move x by up to a cell and a half of the given map (measured: 98 / 99 within
-        # one cell, 100 / 100 within two)
+        # (0.1 m cells) move x by a cell or so on the given map (measured on these trials: 98 / 99 within
+        # one cell; the test allows two)
         closest += abs(res.pose[0] - r0[0]) < 0.05
     assert ok >= required
     assert closest >= required
