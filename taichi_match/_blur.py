@@ -39,7 +39,7 @@ from scipy import fft, ndimage
 from ._errors import InvalidOptionError
 from ._grid import GridMap
 
-__all__ = ["blur", "occupancy_interval", "BLUR_KINDS"]
+__all__ = ["blur", "BLUR_KINDS"]
 
 BLUR_KINDS = ("gaussian", "ramp", "envelope")
 
@@ -71,16 +71,6 @@ def _convolve_same(x, taps, axis):
     full = fft.irfft(spectrum, n, axis=axis)
     start = (len(taps) - 1) // 2
     return np.take(full, np.arange(start, start + size), axis=axis)
-
-
-def occupancy_interval(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "envelope"] = "gaussian",
-                       occupied: float = 0.5):
-    """(map as compared, blurred map) float64 arrays (NaN unknown): the blurred map twice for
-    "gaussian" and "ramp"; for "envelope", the map itself and its envelope."""
-    if kind == "envelope":
-        return grid.prob, blur(grid, width, kind=kind, occupied=occupied).prob
-    blurred = blur(grid, width, kind=kind, occupied=occupied).prob
-    return blurred, blurred
 
 
 def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "envelope"] = "gaussian",

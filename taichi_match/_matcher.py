@@ -32,11 +32,11 @@ __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARI
 # The scale s of cov = s H(e)^-1 + floor (``_covariance.covariance_floor``, FLOOR_CELLS cells), fitted
 # where the truth is exact: on real-map crops (bench/real_maps.py, 382 correct matches of seeds 0
 # and 1) (s, floor) = (2.0, 0.1 cell) gives a mean NEES of 2.96 (3 is consistent), and on submaps
-# built from simulated scans with exact poses (tests/test_covariance_nees.py) about 2. Against the
-# reference trajectories of shared/logs the NEES is higher (about 10, bench/SUBMAPS.md): those
+# built from simulated scans with exact poses (tests/test_covariance_nees.py) 1.31 (conservative).
+# Against the reference trajectories of shared/logs it is 10.6 (bench/SUBMAPS.md): those
 # references are themselves SLAM results, "a few centimetres and a few tenths of a degree" off
-# (SOURCES.md); a relative error of 1.5 cm and 0.1 degree in them accounts for the excess (NEES
-# 2.7 with it added; bench/submaps.py prints both). Valid for the default options.
+# (SOURCES.md); with 1.5 cm and 0.1 degree of relative error in them it is 2.85 (bench/submaps.py
+# prints both). Valid for the default options.
 CALIBRATED_COVARIANCE_SCALE = 2.0
 
 # Trust region of the Newton driver on entering a finer level, in that level's cells: the

@@ -11,7 +11,7 @@ import weakref
 
 import numpy as np
 
-from ._blur import occupancy_interval
+from ._blur import blur
 from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
 from ._grid import GridMap, trinary
@@ -49,11 +49,13 @@ class PreparedMap:
         self.blur_width = float(blur_width)
         self.blur_kind = blur_kind
         self.blur_growth = float(blur_growth)
-        lo, hi = occupancy_interval(grid, blur_width, kind=blur_kind)
-        self.lower = grid.with_prob(lo)         # the map as compared (blurred but for "envelope")
-        self.blurred = grid.with_prob(hi)       # the blurred map ("envelope": its envelope hi)
-        # the paper's |p_A - p_B| (``_kernels``); for "envelope" on the map itself, to count the overlap
-        values = np.where(np.isnan(lo), _UNKNOWN, lo).astype(np.float32)
+        blurred = blur(grid, blur_width, kind=blur_kind)
+        self.blurred = blurred if blurred is not grid else grid.with_prob(grid.prob)   # "envelope": hi
+        # the map as compared: blurred for the paper's |p_A - p_B| (``_kernels``); for "envelope" the
+        # map itself (a copy: a strong reference to the caller's map would keep it in the matcher's
+        # weak-keyed cache forever), on which the dense kernel only counts the overlap
+        self.lower = grid.with_prob(grid.prob) if blur_kind == "envelope" else self.blurred
+        values = np.where(np.isnan(self.lower.prob), _UNKNOWN, self.lower.prob).astype(np.float32)
         self.padded = np.ascontiguousarray(np.pad(values, PAD, constant_values=_UNKNOWN))   # role A
         self.values = np.ascontiguousarray(values)                                          # role B
         if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
@@ -83,14 +85,10 @@ class PreparedMap:
     def grid(self) -> GridMap:
         """The map this was prepared from (alive for as long as its owner keeps it), after the
         evidence conversion."""
-        if self._converted is not None:
-            if self._grid() is None:
-                raise ReferenceError("the map this PreparedMap was made from no longer exists")
-            return self._converted
         grid = self._grid()
         if grid is None:
             raise ReferenceError("the map this PreparedMap was made from no longer exists")
-        return grid
+        return grid if self._converted is None else self._converted
 
     @property
     def wall_distance(self):
