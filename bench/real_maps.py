@@ -36,7 +36,6 @@ import numpy as np
 
 import taichi_match as tm
 from taichi_match import io
-from taichi_match._covariance import FLOOR_CELLS
 from taichi_match.merge import sample
 
 MAPS = Path(__file__).resolve().parents[2] / "shared" / "maps"
@@ -189,7 +188,7 @@ def main():
                          float((res.pose[2] - truth[2] + np.pi) % (2 * np.pi) - np.pi)]
                 records.append(dict(map=name, correct=bool(ok), accepted=bool(res.accepted), error=error,
                                     degenerate=len(res.degenerate), covariance=res.covariance.tolist(),
-                                    floor=(res.covariance_floor / FLOOR_CELLS**2).tolist()))
+                                    floor=res.covariance_floor.tolist(), residual=res.residual))
                 if ok and not len(res.degenerate):
                     err = np.array([res.pose[0] - truth[0], res.pose[1] - truth[1],
                                     (res.pose[2] - truth[2] + np.pi) % (2 * np.pi) - np.pi])

@@ -20,7 +20,8 @@ Reported per log and over all: success from good and wide guesses per pair kind;
 ``calibrated_covariance`` over correct good and wide matches (consistent: 3, with the chi-square
 95 % band of the mean for that many matches); the verdict's precision (accepted results that are
 correct) and recall (correct results that are accepted) over all guesses, bad ones included; the
-median time per match; ECC's success from the same good guesses.
+median time per match; ECC's success from the same good guesses. Then a check of the covariance
+that does not trust the reference: ``cycle_nees`` over triplets of submaps (i, i+1, i+2).
 
     python bench/submaps.py                         # all logs, table to stdout
     python bench/submaps.py --out bench/SUBMAPS.md --records /tmp/submaps.jsonl
@@ -41,7 +42,6 @@ from scipy import stats
 
 import taichi_match as tm
 from taichi_match import compose, inverse, wrap_angle
-from taichi_match._covariance import FLOOR_CELLS
 from taichi_match.logs import read_carmen, read_tum
 from taichi_match.scans import scans_to_grid, trinary
 
@@ -150,6 +150,37 @@ def summarise(records, ecc):
     return out
 
 
+def cycle_nees(records):
+    """The reference-free check of the covariance: for submaps i, i+1, i+2 whose three matches from
+    good guesses (two consecutive pairs and the disjoint one) are all accepted, correct and without
+    a degenerate direction, the pose of i+2 in i by way of i+1 against the direct one. Their
+    difference involves no reference pose; its NEES under the three calibrated covariances
+    (propagated to first order, as independent) averages 3 when they are consistent.
+    Returns (mean NEES, n)."""
+    def loop(x):
+        d = compose(inverse(x[6:]), compose(x[:3], x[3:6]))
+        return np.array([d[0], d[1], wrap_angle(d[2])])
+
+    done = {(r["log"], r["grids"], r["i"], r["j"]): r for r in records if r["guess"] == "good"}
+    nees = []
+    for (log, grids, i, j), first in done.items():
+        legs = [first, done.get((log, grids, j, j + 1)), done.get((log, grids, i, j + 1))]
+        if j != i + 1 or not all(r and r["correct"] and r["accepted"] and not r["degenerate"] for r in legs):
+            continue
+        x = np.concatenate([r["pose"] for r in legs])
+        jac = np.empty((3, 9))
+        for k in range(9):
+            h = np.zeros(9)
+            h[k] = 1e-6
+            jac[:, k] = (loop(x + h) - loop(x - h)) / 2e-6
+        cov = np.zeros((9, 9))
+        for k, r in enumerate(legs):
+            cov[3 * k:3 * k + 3, 3 * k:3 * k + 3] = r["calibrated"]
+        d = loop(x)
+        nees.append(float(d @ np.linalg.solve(jac @ cov @ jac.T, d)))
+    return (float(np.mean(nees)) if nees else float("nan")), len(nees)
+
+
 def pct(pair):
     k, n = pair
     return f"{100.0 * k / n:.1f} ({k}/{n})" if n else "-"
@@ -233,9 +264,11 @@ def main():
                                         walls=ev.walls_compared, agreement=ev.wall_agreement,
                                         conflict=ev.wall_conflict, uncertainty=ev.uncertainty,
                                         degenerate=len(res.degenerate), covariance=res.covariance.tolist(),
-                                        floor=(res.covariance_floor / FLOOR_CELLS**2).tolist(),
+                                        floor=res.covariance_floor.tolist(), residual=res.residual,
+                                        calibrated=res.calibrated_covariance.tolist(),
                                         error=[float(res.pose[0] - truth[0]), float(res.pose[1] - truth[1]),
-                                               float(wrap_angle(res.pose[2] - truth[2]))]))
+                                               float(wrap_angle(res.pose[2] - truth[2]))],
+                                        pose=res.pose.tolist()))
                     if have_ecc and guess_kind == "good":
                         pose, sec = ecc_match(gs[i], gs[j], r0)
                         ok = bool(np.all(np.isfinite(pose)) and np.hypot(*(pose[:2] - truth[:2])) < 0.1
@@ -284,6 +317,11 @@ def main():
         text.append(f"| {name} | {grid_kind} | {cells} | {mean:.2f} ({lo:.2f}-{hi:.2f}, {n}) | {s['nees_ref'][0]:.2f} "
                     f"| {pct(s['precision'])} "
                     f"| {pct(s['recall'])} | {s['ms']:.1f} | {pct(s['ecc'])} |")
+    mean, n = cycle_nees(all_records)
+    lo, hi = nees_band(n) if n else (float("nan"), float("nan"))
+    text += ["", f"Reference-free check of the covariance (``cycle_nees``: submaps i, i+1, i+2, the pose of i+2 in i "
+                 f"by way of i+1 against the direct match, good guesses, all three accepted and correct): mean NEES "
+                 f"{mean:.2f} over {n} triplets (band {lo:.2f}-{hi:.2f})."]
     print()
     print("\n".join(text))
     if args.records:

@@ -8,17 +8,23 @@ centroid; a scalar L means M = diag(1, 1, L)): a direction whose curvature is be
 at ``floor_rtol`` times the largest (and at an absolute ``floor_abs``) before inversion, so an
 unconstrained direction shows as a very large but finite variance, never NaN.
 
-The calibrated covariance adds ``covariance_floor``: the error the Hessian cannot see.
+The calibrated covariance (``MatchResult.calibrated_covariance``) scales H^-1 with the residual
+and adds the covariance of the plateau of e, an error the Hessian cannot see (``plateau_sd``,
+``covariance_floor``).
 """
 
 import numpy as np
 
-__all__ = ["covariance_from_hessian", "covariance_floor", "centroid_metric", "FLOOR_CELLS"]
+__all__ = ["covariance_from_hessian", "covariance_floor", "plateau_sd", "centroid_metric", "RESIDUAL_EXPONENT",
+           "RESIDUAL_MIN"]
 
-# The standard deviation, in cells of A, of the error the Hessian cannot see (e is flat within a
-# cell: nearest-cell lookups). Fitted with CALIBRATED_COVARIANCE_SCALE on real-map crops, whose
-# truth is exact (bench/calibrate_covariance.py): 0.1 cell.
-FLOOR_CELLS = 0.1
+# cov = s * q**RESIDUAL_EXPONENT * H(e)^-1 + plateau: q is e per wall compared (the mean conflict
+# of a wall at the pose found, 0 when the maps agree exactly), s CALIBRATED_COVARIANCE_SCALE. Both
+# fitted by bench/calibrate_covariance.py; see CALIBRATED_COVARIANCE_SCALE in _matcher.
+RESIDUAL_EXPONENT = 0.65
+# q is taken as at least this: maps that agree exactly (a map against itself) keep a share of H^-1,
+# and with it the huge variance along a degenerate direction.
+RESIDUAL_MIN = 0.01
 
 
 def centroid_metric(centroid, spread, theta):
@@ -51,10 +57,28 @@ def covariance_from_hessian(hessian, metric, *, scale=1.0, degenerate_rtol=1e-3,
     return 0.5 * (cov + cov.T), dirs * signs[:, None]
 
 
-def covariance_floor(resolution, centroid, spread, theta, cells=None):
-    """The covariance (x, y, theta) of an error of ``cells`` cells (default ``FLOOR_CELLS``) of
-    size ``resolution`` at B's centroid in each direction, and of a rotation moving a typical
-    cell of B (at rms distance ``spread`` from the centroid ``centroid`` in B's frame) as far."""
-    sd = (FLOOR_CELLS if cells is None else cells) * resolution
+def covariance_floor(sd, centroid, spread, theta):
+    """The covariance (x, y, theta) of an error of standard deviation ``sd`` metres at B's centroid
+    in each direction, and of a rotation moving a typical cell of B (at rms distance ``spread``
+    from the centroid ``centroid`` in B's frame) as far."""
     m_inv = np.linalg.inv(centroid_metric(centroid, spread, theta))
     return sd * sd * (m_inv @ m_inv.T)
+
+
+def plateau_sd(grid, points):
+    """The standard deviation, in cells of ``grid``, of a pose error spread evenly over the
+    plateau of e that the points (the other map's walls, placed in ``grid``'s frame) leave.
+
+    With nearest-cell lookups e does not change while no point crosses a cell boundary. Along
+    each grid axis the points' fractional coordinates cut the cell into gaps; the widest is the
+    longest shift that moves no point into another cell. A map against itself puts every point
+    at the same fraction (a whole cell: sd 1/sqrt(12) = 0.29 cell); maps turned against each
+    other spread them (a plateau of a small fraction of a cell). The larger axis is returned."""
+    rows, cols = grid.grid_coordinates(points)
+    if len(rows) < 2:
+        return 1.0 / np.sqrt(12.0)
+    widest = 0.0
+    for x in (rows, cols):
+        f = np.sort(np.mod(x, 1.0))
+        widest = max(widest, float(np.max(np.diff(f))), 1.0 - float(f[-1] - f[0]))
+    return widest / np.sqrt(12.0)

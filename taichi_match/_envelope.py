@@ -39,7 +39,7 @@ from ._grid import GridMap
 from ._kernels import _LOCK, PAD, _launch, ensure_initialized
 from ._se2 import as_poses, inverse, transform_points
 
-__all__ = ["conflict_grid", "wall_points", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
+__all__ = ["conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
 
 CHUNK = 256
 _UNKNOWN = np.float32(-1.0)
@@ -60,7 +60,8 @@ def wall_points(grid: GridMap, occupied: float = 0.5):
     return rows, cols, p[rows, cols]
 
 
-def _points_array(rows, cols, weights, unknown_cost):
+def points_array(rows, cols, weights, unknown_cost):
+    """The walls as the kernel reads them: (4, M) float32 columns (row, col, w, w * unknown_cost)."""
     w = np.asarray(weights, dtype=np.float64)
     return np.ascontiguousarray(np.vstack([rows, cols, w, w * unknown_cost]), dtype=np.float32)
 
@@ -126,8 +127,8 @@ class EnvelopeEngine:
 
     def __init__(self, a, b, unknown_cost=0.0):
         self._grid_a, self._grid_b = a.conflict, b.conflict
-        self._points_b = _points_array(*b.walls, unknown_cost)
-        self._points_a = _points_array(*a.walls, unknown_cost)
+        self._points_b = b.wall_array(unknown_cost)
+        self._points_a = a.wall_array(unknown_cost)
         self._b2a = AffineMap(a.lower, b.lower)
         self._a2b = AffineMap(b.lower, a.lower)
 

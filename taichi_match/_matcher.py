@@ -19,25 +19,25 @@ from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, prior,
                     prior_hessian, prior_values)
-from ._covariance import centroid_metric, covariance_floor, covariance_from_hessian
+from ._covariance import RESIDUAL_EXPONENT, RESIDUAL_MIN, centroid_metric, covariance_floor, covariance_from_hessian, plateau_sd
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
 from ._newton import minimize_newton
 from ._prepared import ENGINES, PreparedMap, make_engine
-from ._se2 import as_pose, wrap_angle
-from ._verdict import Evidence, evidence
+from ._se2 import as_pose, inverse, transform_points, wrap_angle
+from ._verdict import Evidence, compare_walls, evidence
 
 __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARIANCE_SCALE"]
 
 # The scale s of cov = s H(e)^-1 + floor (``_covariance.covariance_floor``, FLOOR_CELLS cells), fitted
-# where the truth is exact: on real-map crops (bench/real_maps.py, 382 correct matches of seeds 0
-# and 1) (s, floor) = (2.0, 0.1 cell) gives a mean NEES of 2.96 (3 is consistent), and on submaps
-# built from simulated scans with exact poses (tests/test_covariance_nees.py) 1.31 (conservative).
-# Against the reference trajectories of shared/logs it is 10.6 (bench/SUBMAPS.md): those
-# references are themselves SLAM results, "a few centimetres and a few tenths of a degree" off
-# (SOURCES.md); with 1.5 cm and 0.1 degree of relative error in them it is 2.85 (bench/submaps.py
-# prints both). Valid for the default options.
-CALIBRATED_COVARIANCE_SCALE = 2.0
+# on real laser data without trusting its reference trajectory (bench/calibrate_covariance.py):
+# for submaps i, i+1, i+2 the pose of i+2 in i by way of i+1 against the direct match (no
+# reference pose enters; 378 triplets) gives a mean NEES of 3.19 (band 2.76-3.25), and a real
+# map matched against itself (exact truth, the cell-sized plateau of e: 88 matches) 2.73 (band
+# 2.51-3.53). Where B is a resampled copy of A's own map (real-map crops) or was built from
+# simulated scans, the errors are 4 mm and the covariance is conservative (NEES 0.2 and 0.1);
+# s = 2 fitted there was 3 times too small on the real laser data. Valid for the default options.
+CALIBRATED_COVARIANCE_SCALE = 11.0
 
 # Trust region of the Newton driver on entering a finer level, in that level's cells: the
 # coarser level left the pose within a few of its own cells (measured in bench/TUNING.md).
@@ -87,6 +87,10 @@ class MatchOptions:
     refine_iterations : budget on each finer level (levels > 1): Newton launches after the first
         (from a trust region of 4 cells, 1 on the given maps); for BFGS, iterations on the given
         maps (of at most two cells), the levels between getting only the compass search.
+    refine_xtol : on the finer levels, Newton stops when its model's step is shorter than
+        refine_xtol * step (``xtol`` holds on the coarsest level, which only has to find the
+        basin). Stopping at a quarter of a cell there left laser submaps 1 degree off and the
+        pose 2-4 times farther from the truth than settling does (bench/TUNING.md).
     optimizer : None (default): "newton" with nearest-cell lookup, "bfgs" with bilinear.
         "newton": trust-region Newton on the stencil's own Hessian, one launch
         of the 25 poses of eq. (10)-(12) per iteration, whose last launch also gives the
@@ -116,7 +120,8 @@ class MatchOptions:
     gtol: float = 1e-3
     max_iterations: int = 100
     levels: int = 3
-    refine_iterations: int = 3
+    refine_iterations: int = 8
+    refine_xtol: float = 0.05
     optimizer: Optional[Literal["newton", "bfgs"]] = None
     interpolation: Literal["nearest", "bilinear"] = "nearest"
     covariance_scale: float = 1.0
@@ -129,7 +134,7 @@ class MatchOptions:
             raise InvalidOptionError(f"unknown_cost must be in [0, 1]; got {self.unknown_cost!r}")
         if self.blur_growth > 16.0:
             raise InvalidOptionError(f"blur_growth must be at most 16; got {self.blur_growth!r}")
-        for name in ("blur", "prior_weight_per_cell", "gtol", "covariance_scale"):
+        for name in ("blur", "prior_weight_per_cell", "gtol", "covariance_scale", "refine_xtol"):
             _check_number(name, getattr(self, name), minimum=0.0)
         if self.xtol is not None:
             _check_number("xtol", self.xtol, minimum=0.0)
@@ -225,7 +230,10 @@ class MatchResult:
     covariance : 3x3 in (x, y, theta) units, ``covariance_scale * H(e)^-1`` with degenerate
         directions given a very large variance (eq. 11).
     information : the 3x3 numeric Hessian of e at ``pose`` (eq. 12), unmodified.
-    covariance_floor : the 3x3 covariance that ``calibrated_covariance`` adds (``_covariance``).
+    covariance_floor : the 3x3 covariance that ``calibrated_covariance`` adds: an error spread
+        over the plateau where e stays flat while no wall changes cell (``_covariance.plateau_sd``).
+    residual : e per wall compared at ``pose`` (``evidence.walls_compared``): how much the maps
+        still disagree there; ``calibrated_covariance`` grows with it.
     degenerate : (k, 3) unit vectors in (x, y, theta) along which the maps give (almost) no
         information, e.g. (1, 0, 0) in a corridor along x.
     cost : h at ``pose`` (eq. 8), on the blurred maps; ``prior_weight`` is the K it used.
@@ -258,14 +266,15 @@ class MatchResult:
     accepted: bool
     evidence: Evidence
     covariance_floor: np.ndarray
+    residual: float
     options: MatchOptions = field(repr=False)
 
     @property
     def calibrated_covariance(self):
-        """``CALIBRATED_COVARIANCE_SCALE * H(e)^-1 + covariance_floor``: the covariance to put in a
-        pose graph, consistent with the errors measured on laser-built submaps and real-map crops
-        (see ``CALIBRATED_COVARIANCE_SCALE``; valid for the default options)."""
-        return self.covariance * (CALIBRATED_COVARIANCE_SCALE / self.options.covariance_scale) + self.covariance_floor
+        """``s * residual**a * H(e)^-1 + covariance_floor`` (s ``CALIBRATED_COVARIANCE_SCALE``, a
+        ``_covariance.RESIDUAL_EXPONENT``): the covariance to put in a pose graph (see
+        ``CALIBRATED_COVARIANCE_SCALE`` for how it was fitted; valid for the default options)."""
+        return calibrate(self.covariance / self.options.covariance_scale, self.residual, self.covariance_floor)
 
     # OptimizeResult-style aliases
     @property
@@ -347,18 +356,21 @@ class Matcher:
         if len(degenerate) == 3 and status.converged:
             status = Status.NO_INFORMATION
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
-        floor = covariance_floor(prep_a.resolution, prep_b.centroid, prep_b.spread, pose[2])
-        calibrated = covariance * (CALIBRATED_COVARIANCE_SCALE / opts.covariance_scale) + floor
-        proof = evidence(prep_a.wall_distance, prep_b.wall_distance, pose, calibrated, degenerate, prep_b.centroid,
-                         prep_b.spread)
+        walls_a, walls_b = prep_a.wall_distance, prep_b.wall_distance
+        comparison = compare_walls(walls_a, walls_b, pose)
+        residual = float(e) / max(comparison[0], 1)
+        plateau = min(plateau_sd(prep_a.grid, transform_points(pose, walls_b.centres)) * prep_a.resolution,
+                      plateau_sd(prep_b.grid, transform_points(inverse(pose), walls_a.centres)) * prep_b.resolution)
+        floor = covariance_floor(plateau, prep_b.centroid, prep_b.spread, pose[2])
+        calibrated = calibrate(covariance / opts.covariance_scale, residual, floor)
+        proof = evidence(comparison, pose, calibrated, degenerate, prep_b.centroid, prep_b.spread)
         return MatchResult(
             pose=pose, covariance=covariance, information=information, degenerate=degenerate,
             cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
             initial_pose=r0, iterations=nit, evaluations=counter.poses, launches=counter.launches,
             converged=status.converged, status=status, message=MESSAGES[status],
             seconds=time.perf_counter() - start, accepted=proof.accepts(status.converged), evidence=proof,
-            covariance_floor=floor,
-            options=opts)
+            covariance_floor=floor, residual=residual, options=opts)
 
     @staticmethod
     def _newton_levels(prep_a, prep_b, opts, r0, full_weight, counter):
@@ -379,9 +391,10 @@ class Matcher:
             else:
                 radius = (ENTRY_RADIUS_CELLS_FINEST if level == 0 else ENTRY_RADIUS_CELLS) * eps
                 budget = min(opts.refine_iterations, opts.max_iterations)
-            res = minimize_newton(evaluate, cost.to_z(r), radius=radius, max_radius=cost.max_step,
-                                  xtol=opts.step_tolerance * eps, gtol=opts.gtol * cost.weight,
-                                  max_launches=budget, first=first, gradient_fallback=level == top)
+            xtol = opts.step_tolerance if level == top else opts.refine_xtol
+            res = minimize_newton(evaluate, cost.to_z(r), radius=radius, max_radius=cost.max_step, xtol=xtol * eps,
+                                  gtol=opts.gtol * cost.weight, max_launches=budget, first=first,
+                                  gradient_fallback=level == top)
             r, nit = cost.to_r(res.z), nit + res.nit
             if level == top:          # the finer levels refine within a fixed budget of launches
                 status = res.status
@@ -542,6 +555,12 @@ class _LevelCost:
         rs = zs @ self._from_z.T
         e_values, _ = self.evaluate(rs, count="none")
         return e_values + prior_values(rs, self._r0, self.weight, self._rotation_scale)
+
+
+def calibrate(inverse_hessian, residual, floor):
+    """``s * max(residual, RESIDUAL_MIN)**RESIDUAL_EXPONENT * inverse_hessian + floor``, s being
+    ``CALIBRATED_COVARIANCE_SCALE`` (``_covariance``)."""
+    return CALIBRATED_COVARIANCE_SCALE * max(residual, RESIDUAL_MIN) ** RESIDUAL_EXPONENT * inverse_hessian + floor
 
 
 _DEFAULT = {}

@@ -17,7 +17,7 @@ from ._errors import InvalidOptionError
 from ._grid import GridMap, trinary
 from ._kernels import PAD, TaichiEngine
 from ._pyramid import coarsen
-from ._envelope import EnvelopeEngine, NumpyEnvelope, conflict_grid, wall_points
+from ._envelope import EnvelopeEngine, NumpyEnvelope, conflict_grid, points_array, wall_points
 from ._reference import NumpyBilinear, NumpyDiscrepancy
 from ._verdict import WallDistance
 
@@ -80,6 +80,7 @@ class PreparedMap:
         self._coarser = None
         self._coarser_grid = None
         self._wall_distance = None
+        self._wall_arrays = {}
 
     @property
     def grid(self) -> GridMap:
@@ -96,6 +97,14 @@ class PreparedMap:
         if self._wall_distance is None:
             self._wall_distance = WallDistance(self.grid)
         return self._wall_distance
+
+    def wall_array(self, unknown_cost):
+        """The walls as the envelope kernel reads them (``_envelope.points_array``), made once per
+        ``unknown_cost``."""
+        key = float(unknown_cost)
+        if key not in self._wall_arrays:
+            self._wall_arrays[key] = points_array(*self.walls, key)
+        return self._wall_arrays[key]
 
     def coarser(self):
         """The next level of the pyramid: the map with cells twice as large, blurred ``blur_growth``

@@ -35,7 +35,7 @@ from scipy import ndimage
 from ._covariance import centroid_metric
 from ._se2 import inverse, transform_points
 
-__all__ = ["Evidence", "evidence", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
+__all__ = ["Evidence", "evidence", "compare_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
            "MAX_CONFLICT", "MAX_UNCERTAINTY_M"]
 
 AGREE_CELLS = 2.0
@@ -86,16 +86,20 @@ class WallDistance:
         return out
 
 
-def evidence(walls_a: WallDistance, walls_b: WallDistance, pose, covariance, degenerate, centroid, spread) -> Evidence:
-    """The evidence at ``pose`` (r_A2B) for maps with walls ``walls_a``, ``walls_b``; B's known
-    cells have their centroid at ``centroid`` (B's frame) and rms distance ``spread`` from it."""
+def compare_walls(walls_a: WallDistance, walls_b: WallDistance, pose):
+    """(walls compared, agreement, conflict) at ``pose`` (r_A2B) for maps with walls ``walls_a``,
+    ``walls_b`` (see the module docstring)."""
     d = np.concatenate([walls_a.lookup(transform_points(pose, walls_b.centres)),
                         walls_b.lookup(transform_points(inverse(pose), walls_a.centres))])
     d = d[~np.isnan(d)]
     n = len(d)
-    agreement = float(np.mean(d <= AGREE_CELLS)) if n else 0.0
-    conflict = float(np.mean(d > CONFLICT_CELLS)) if n else 1.0
-    return Evidence(n, agreement, conflict, _uncertainty(covariance, degenerate, pose[2], centroid, spread))
+    return n, (float(np.mean(d <= AGREE_CELLS)) if n else 0.0), (float(np.mean(d > CONFLICT_CELLS)) if n else 1.0)
+
+
+def evidence(comparison, pose, covariance, degenerate, centroid, spread) -> Evidence:
+    """The evidence from ``compare_walls``'s ``comparison`` at ``pose`` and the covariance there;
+    B's known cells have their centroid at ``centroid`` (B's frame) and rms distance ``spread``."""
+    return Evidence(*comparison, _uncertainty(covariance, degenerate, pose[2], centroid, spread))
 
 
 def _uncertainty(covariance, degenerate, theta, centroid, spread):

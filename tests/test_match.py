@@ -158,18 +158,21 @@ def test_evaluation_counts_stay_small_on_a_fixed_problem(corridor_map, matcher):
     assert 6 * res.launches <= res.evaluations <= 25 * res.launches
 
 
-def test_calibrated_covariance_uses_the_published_scale(corridor_map, matcher):
+def test_calibrated_covariance_uses_the_published_model(corridor_map, matcher):
     from taichi_match import CALIBRATED_COVARIANCE_SCALE
-
-    from taichi_match._covariance import FLOOR_CELLS
+    from taichi_match._covariance import RESIDUAL_EXPONENT, RESIDUAL_MIN
 
     res = matcher.match(corridor_map, corridor_map, (0.1, 0.2, 0.05), covariance_scale=4.0)
-    assert np.allclose(res.calibrated_covariance,
-                       res.covariance / 4.0 * CALIBRATED_COVARIANCE_SCALE + res.covariance_floor)
-    # the floor: FLOOR_CELLS cells at B's centroid (here the map's centre, (0, 0)) along x and y
+    assert res.residual == pytest.approx(res.discrepancy / res.evidence.walls_compared)
+    factor = CALIBRATED_COVARIANCE_SCALE * max(res.residual, RESIDUAL_MIN) ** RESIDUAL_EXPONENT
+    assert np.allclose(res.calibrated_covariance, res.covariance / 4.0 * factor + res.covariance_floor)
+    # a map against itself: every wall sits at the same place in its cell, e is flat over a whole
+    # cell, and the floor is an error spread evenly over it (sd 1/sqrt(12) cell) at B's centroid
     floor = res.covariance_floor
-    assert np.allclose(np.sqrt(floor[0, 0]), FLOOR_CELLS * corridor_map.resolution, rtol=1e-6)
-    assert np.allclose(np.sqrt(floor[1, 1]), FLOOR_CELLS * corridor_map.resolution, rtol=1e-6)
+    for axis in (0, 1):
+        assert 0.2 * corridor_map.resolution < np.sqrt(floor[axis, axis]) <= corridor_map.resolution / np.sqrt(12) + 1e-12
+    # the corridor's direction keeps its huge variance
+    assert len(res.degenerate) == 1 and res.calibrated_covariance[0, 0] > 1.0
 
 
 def test_coarse_to_fine_levels_reach_the_same_answer(corridor_map):
