@@ -36,7 +36,7 @@ import numpy as np
 
 from ._cost import AffineMap, pose_features
 from ._grid import GridMap
-from ._kernels import _LOCK, PAD, _launch, ensure_initialized
+from ._kernels import PAD, _launch, ensure_initialized, kernel_lock
 from ._se2 import as_poses, inverse, transform_points
 
 __all__ = ["conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
@@ -143,7 +143,7 @@ class EnvelopeEngine:
         affine_b2a = _finite(self._b2a.from_features(pose_features(poses)))
         affine_a2b = _finite(self._a2b.from_features(pose_features(poses, inverse=True)))
         out = np.empty((2, n, chunks), dtype=np.float32)
-        with _LOCK:
+        with kernel_lock():
             kernel = _kernel()
             _launch(kernel, (self._grid_a, self._points_b, affine_b2a, self._grid_b, self._points_a,
                              affine_a2b, out), None)

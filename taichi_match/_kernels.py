@@ -41,7 +41,7 @@ import numpy as np
 
 from ._errors import EngineError
 
-__all__ = ["TaichiEngine", "ensure_initialized", "Kernels", "PAD"]
+__all__ = ["TaichiEngine", "ensure_initialized", "kernel_lock", "check_not_forked", "Kernels", "PAD"]
 
 # Width of the ring of unknown cells around A: lookups are clamped two cells inside the padded
 # grid and then shifted by up to two cells, so any lookup that leaves A must land on the ring.
@@ -52,12 +52,17 @@ _STATE = {"ti": None, "kernel": None, "forked": False}
 
 
 def _after_fork_in_child():
-    """Remember that this process was forked while Taichi (ours or the host's) was running."""
+    """Remember that this process was forked while Taichi (ours or the host's) was running, or
+    while another thread held the kernel lock (it would never be released here)."""
+    stuck = not _LOCK.acquire(blocking=False)
+    if not stuck:
+        _LOCK.release()
     ti = sys.modules.get("taichi")
     try:
-        if ti is not None and ti.lang.impl.get_runtime().prog is not None:
-            _STATE["forked"] = True
+        running = ti is not None and ti.lang.impl.get_runtime().prog is not None
     except Exception:  # pragma: no cover - a half-imported taichi
+        running = True
+    if running or stuck:
         _STATE["forked"] = True
 
 
@@ -77,14 +82,26 @@ def _import_taichi():
     return _STATE["ti"]
 
 
+def kernel_lock():
+    """The lock that serialises every Taichi call (``check_not_forked`` first)."""
+    check_not_forked()
+    return _LOCK
+
+
+def check_not_forked():
+    """Raise ``EngineError`` in a process forked after Taichi started. Called before any lock is
+    taken: another thread of the parent may have held it at the fork, and in the child nobody
+    would ever release it."""
+    if _STATE["forked"]:
+        raise EngineError(
+            "Taichi was initialised in a parent process before this one was forked; Taichi kernels "
+            "hang in a forked child. Start worker processes with the 'spawn' or 'forkserver' method "
+            "(multiprocessing.get_context('spawn')), or use the engine only in the children.")
+
+
 def ensure_initialized():
     """Initialise Taichi on the CPU once (or adopt the host's runtime) and build the kernels."""
-    with _LOCK:
-        if _STATE["forked"]:
-            raise EngineError(
-                "Taichi was initialised in a parent process before this one was forked; Taichi kernels "
-                "hang in a forked child. Start worker processes with the 'spawn' or 'forkserver' method "
-                "(multiprocessing.get_context('spawn')), or use the engine only in the children.")
+    with kernel_lock():
         ti = _import_taichi()
         runtime = ti.lang.impl.get_runtime()
         if runtime.prog is None:
@@ -387,7 +404,7 @@ class TaichiEngine:
         ``planes + (rows of B,)``, float32, one partial sum per row."""
         affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
         out = np.empty(planes + (self._rows.shape[0],), dtype=np.float32)
-        with _LOCK:
+        with kernel_lock():
             kernel = getattr(ensure_initialized(), name)
             _launch(kernel, (self._a, self._b, self._rows, affine, out), mode)
         return out

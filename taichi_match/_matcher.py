@@ -22,6 +22,7 @@ from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stenci
 from ._covariance import RESIDUAL_EXPONENT, RESIDUAL_MIN, centroid_metric, covariance_floor, covariance_from_hessian, plateau_sd
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
+from ._kernels import check_not_forked
 from ._newton import minimize_newton
 from ._prepared import ENGINES, PreparedMap, make_engine
 from ._se2 import as_pose, inverse, transform_points, wrap_angle
@@ -318,6 +319,7 @@ class Matcher:
     def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None,
                 blur_growth: Optional[float] = None, evidence: Optional[str] = None) -> PreparedMap:
         """Blur ``grid`` once (cached per blur for as long as the map lives)."""
+        check_not_forked()              # before the cache's lock, which a parent's thread may have held
         if not isinstance(grid, GridMap):
             raise InvalidMapError(f"expected a GridMap; got {type(grid).__name__}")
         key = (self.options.blur if blur is None else float(blur),

@@ -29,7 +29,7 @@ program, as it does for the kernels of ``_kernels``.
 import numpy as np
 
 from ._errors import InvalidOptionError
-from ._kernels import _LOCK, _STATE, ensure_initialized
+from ._kernels import _STATE, ensure_initialized, kernel_lock
 
 __all__ = ["count_traversals_taichi"]
 
@@ -138,7 +138,7 @@ def count_traversals_taichi(segments, hit, shape):
         return hits, misses
     if not np.all(np.abs(segments) <= MAX_COORDINATE):          # also false for NaN
         raise InvalidOptionError(f"segment coordinates must be finite and at most {MAX_COORDINATE:g} cells")
-    with _LOCK:
+    with kernel_lock():
         ensure_initialized()
         if _KERNEL["traverse"] is None:
             _KERNEL["traverse"] = _build_kernel(_STATE["ti"])

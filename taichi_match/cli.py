@@ -83,6 +83,7 @@ def _reproduce(args):
 
 
 EXIT_OK, EXIT_NOT_ACCEPTED, EXIT_BAD_INPUT = 0, 1, 2
+EXIT_INTERRUPTED, EXIT_BROKEN_PIPE = 130, 141            # 128 + SIGINT, 128 + SIGPIPE, as a shell reports them
 
 
 def _map_overrides(args, which):
@@ -158,12 +159,27 @@ def _align(args):
 
 
 def _merge(args):
-    from taichi_match.io import write_ros_map
+    from taichi_match import MapFileError
+    from taichi_match.io import read_map_yaml, write_ros_map
     from taichi_match.merge import merge_maps
 
+    output = args.output
+    base, ext = os.path.splitext(os.path.basename(output))
+    if ext.lower() not in (".yaml", ".yml") or not base:
+        raise MapFileError(f"-o must name the merged map's YAML, NAME.yaml (its image is NAME.pgm); got {output!r}")
+    image = os.path.join(os.path.dirname(os.path.abspath(output)), base + (".png" if args.mode == "scale" else ".pgm"))
+    inputs = [args.map_a, args.map_b]
+    inputs += [read_map_yaml(path)["image"] for path in inputs if path.lower().endswith((".yaml", ".yml"))]
+    for target in (output, image):
+        if os.path.exists(target):
+            clash = [path for path in inputs if os.path.exists(path) and os.path.samefile(path, target)]
+            if clash:
+                raise MapFileError(f"refusing to write {target!r}: it is the input {clash[0]!r}")
+            if not args.force:
+                raise MapFileError(f"{target!r} exists: use --force to replace it")
     a, b = _load_pair(args)
     merged = merge_maps(a, b, args.pose)
-    write_ros_map(merged, args.output, mode=args.mode)
+    write_ros_map(merged, output, mode=args.mode)
     print(f"wrote {args.output}: {merged.shape[0]} x {merged.shape[1]} cells at {merged.resolution} m, "
           f"origin {merged.origin}")
     return EXIT_OK
@@ -222,7 +238,9 @@ def main(argv=None):
     _add_map_arguments(merge)
     merge.add_argument("--pose", nargs=3, type=float, required=True, metavar=("X", "Y", "THETA"),
                        help="B's pose in A (from align)")
-    merge.add_argument("-o", "--output", required=True, metavar="MERGED.yaml")
+    merge.add_argument("-o", "--output", required=True, metavar="MERGED.yaml",
+                       help="the merged map's YAML; its image goes beside it as MERGED.pgm (.png in scale mode)")
+    merge.add_argument("--force", action="store_true", help="replace an existing output (never an input)")
     merge.add_argument("--mode", choices=("trinary", "scale", "raw"), default="trinary")
     merge.set_defaults(func=_merge)
     args = parser.parse_args(argv)
@@ -232,8 +250,21 @@ def main(argv=None):
 
     try:
         return args.func(args)
+    except KeyboardInterrupt:
+        print("taichi-match: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:                      # the reader went away (| head): nothing more to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except (TaichiMatchError, ValueError, OSError) as exc:
         print(f"taichi-match: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except MemoryError:
+        print("taichi-match: error: out of memory (the maps or the options ask for more than this machine has)",
+              file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:                     # a safety net: one line, never a traceback
+        print(f"taichi-match: error: {type(exc).__name__}: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
 

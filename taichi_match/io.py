@@ -15,9 +15,13 @@ Apart from the core (which never imports it). ROS conventions, as ``map_server``
 - An ``OccupancyGrid`` holds int8 occupancy percent, -1 for unknown, row 0 at the lowest y.
 """
 
+import contextlib
 import os
 import re
+import signal
 import struct
+import tempfile
+import threading
 import zlib
 
 import numpy as np
@@ -176,12 +180,24 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
     ``trinary``: occupied (p > occupied_thresh) black, free (p < free_thresh) white (254),
     unknown grey (205). ``scale``: grey levels 255 (1 - p), unknown transparent (PNG only).
     ``raw``: the occupancy percent as the grey level, unknown 255.
+
+    The image is named after the YAML (``map.yaml`` -> ``map.pgm``) unless ``image`` is given; the
+    YAML's name must end in .yaml or .yml, so the two never clash. Both files are written whole to
+    temporary files beside them and then renamed over the old ones, image first, with SIGINT,
+    SIGTERM and SIGHUP held back meanwhile (in the main thread; the signal is delivered once both
+    are in place): an interruption leaves the complete old map or the complete new one.
     """
     if mode not in MODES:
         raise InvalidOptionError(f"mode must be one of {MODES}; got {mode!r}")
-    base = os.path.splitext(os.path.basename(yaml_path))[0]
+    yaml_path = os.fspath(yaml_path)
+    base, ext = os.path.splitext(os.path.basename(yaml_path))
+    if ext.lower() not in (".yaml", ".yml") or not base:
+        raise MapFileError(f"the map's YAML must be named NAME.yaml or NAME.yml; got {yaml_path!r}")
     image = image or base + (".png" if mode == "scale" else ".pgm")
     folder = os.path.dirname(os.path.abspath(yaml_path))
+    image_path = os.path.join(folder, image)
+    if os.path.abspath(image_path) == os.path.abspath(yaml_path):
+        raise MapFileError(f"the image and the YAML would be the same file: {yaml_path!r}")
     p = grid.prob[::-1]                                           # top row first
     unknown = np.isnan(p)
     q = np.nan_to_num(p, nan=0.0)
@@ -195,15 +211,65 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
             raise InvalidOptionError("scale mode stores unknown cells as transparency: use a .png image")
         grey = np.rint(255 * (1 - q)).astype(np.uint8)
         pixels = np.dstack([grey, np.where(unknown, 0, 255).astype(np.uint8)])
-    write_image(os.path.join(folder, image), pixels)
     x0, y0, yaw = grid.corner_pose
     text = (f"image: {image}\nresolution: {grid.resolution!r}\norigin: [{x0!r}, {y0!r}, {yaw!r}]\n"
             f"negate: 0\noccupied_thresh: {occupied_thresh!r}\nfree_thresh: {free_thresh!r}\nmode: {mode}\n")
+    _replace_files([(image_path, _image_bytes(image_path, pixels)), (yaml_path, text.encode("utf-8"))])
+
+
+def _replace_files(contents):
+    """Write each (path, bytes) to a temporary file beside it, then rename them over the paths in
+    order, signals held back (``_signals_held``); on any failure the temporary files go."""
+    temporary = []
     try:
-        with open(yaml_path, "w", encoding="utf-8") as f:
-            f.write(text)
+        with _signals_held():
+            try:
+                for path, data in contents:
+                    temporary.append(_temporary_copy(path, data))
+                for (path, _), tmp in zip(contents, temporary):
+                    os.replace(tmp, path)
+            finally:                             # before a held-back signal is delivered
+                for tmp in temporary:
+                    if os.path.exists(tmp):
+                        os.unlink(tmp)
     except OSError as exc:
-        raise MapFileError(f"cannot write {yaml_path!r}: {exc.strerror or exc}") from exc
+        raise MapFileError(f"cannot write {exc.filename or contents[0][0]!r}: {exc.strerror or exc}") from exc
+
+
+def _temporary_copy(path, data):
+    folder, name = os.path.split(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+    except BaseException:
+        os.unlink(tmp)
+        raise
+    return tmp
+
+
+@contextlib.contextmanager
+def _signals_held(signums=("SIGINT", "SIGTERM", "SIGHUP")):
+    """Hold these signals back while the block runs (Python handlers run in the main thread only,
+    so elsewhere nothing is held), then deliver the first one that came, to the old handler."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    old = {}
+    for name in signums:
+        if hasattr(signal, name):
+            sig = getattr(signal, name)
+            old[sig] = signal.signal(sig, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        if caught:
+            os.kill(os.getpid(), caught[0])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -315,19 +381,18 @@ def _read_png(data, path):
 
 
 def write_image(path, pixels):
-    """Save a uint8 image (rows, cols) or (rows, cols, 2|3|4): PGM (P5, grey only) or PNG."""
+    """Save a uint8 image (rows, cols) or (rows, cols, 2|3|4): PGM (P5, grey only) or PNG (by the
+    name's extension), replacing any old file whole (see ``write_ros_map``)."""
+    _replace_files([(os.fspath(path), _image_bytes(os.fspath(path), pixels))])
+
+
+def _image_bytes(path, pixels):
     pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
-    try:
-        with open(path, "wb") as f:
-            if path.lower().endswith(".pgm"):
-                if pixels.ndim != 2:
-                    raise InvalidOptionError("a PGM image is grey only")
-                f.write(b"P5\n%d %d\n255\n" % (pixels.shape[1], pixels.shape[0]))
-                f.write(pixels.tobytes())
-            else:
-                f.write(_png_bytes(pixels))
-    except OSError as exc:
-        raise MapFileError(f"cannot write image {path!r}: {exc.strerror or exc}") from exc
+    if path.lower().endswith(".pgm"):
+        if pixels.ndim != 2:
+            raise InvalidOptionError("a PGM image is grey only")
+        return b"P5\n%d %d\n255\n" % (pixels.shape[1], pixels.shape[0]) + pixels.tobytes()
+    return _png_bytes(pixels)
 
 
 def _png_bytes(pixels):

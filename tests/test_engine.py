@@ -13,10 +13,10 @@ from taichi_match import GridMap, Matcher, discrepancy
 from taichi_match import _kernels
 
 
-def run_python(code):
+def run_python(code, timeout=300):
     env = {k: v for k, v in os.environ.items() if not k.startswith(("TI_", "ENABLE_TAICHI"))}
     return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
-                          timeout=300, env=env)
+                          timeout=timeout, env=env)
 
 
 def test_import_does_not_start_taichi_and_a_match_prints_nothing():
@@ -94,6 +94,49 @@ def test_a_child_forked_after_initialisation_gets_an_error_not_a_hang():
         raise SystemExit(os.waitstatus_to_exitcode(status))
     """)
     assert out.returncode == 0, (out.returncode, out.stderr)
+
+
+def test_a_hundred_children_forked_while_another_thread_matches_get_an_error_and_none_hangs():
+    # the thread holds the kernel lock (and the matcher's cache lock) much of the time: a child
+    # forked then must not wait for a lock nobody in it will release
+    out = run_python("""
+        import os, threading, time
+        import taichi_match as tm
+        from taichi_match.scenes import corridor
+        g = corridor(size=4.0, width=2.0, resolution=0.05)
+        tm.match(g, g, (0.1, 0.1, 0.05))
+        stop = threading.Event()
+        def busy():
+            while not stop.is_set():
+                tm.match(g, g, (0.1, 0.1, 0.05))
+        thread = threading.Thread(target=busy)
+        thread.start()
+        codes = []
+        for _ in range(100):
+            pid = os.fork()
+            if pid == 0:
+                try:
+                    tm.match(g, g, (0.1, 0.1, 0.05))
+                except tm.EngineError:
+                    os._exit(0)
+                os._exit(2)
+            deadline = time.monotonic() + 20.0
+            while True:
+                done, status = os.waitpid(pid, os.WNOHANG)
+                if done:
+                    codes.append(os.waitstatus_to_exitcode(status))
+                    break
+                if time.monotonic() > deadline:
+                    os.kill(pid, 9)
+                    os.waitpid(pid, 0)
+                    codes.append("hung")
+                    break
+                time.sleep(0.002)
+        stop.set()
+        thread.join()
+        assert codes == [0] * 100, {c: codes.count(c) for c in set(codes)}
+    """, timeout=600)
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
 
 
 def test_a_child_forked_after_the_host_initialised_taichi_gets_an_error():

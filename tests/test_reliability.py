@@ -1,0 +1,204 @@
+"""Never lose a user's data, never leak a foreign exception (issue 11): the merge's outputs, the
+atomic replacement of a map on disk, the command line's exit codes."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from conftest import rasterize, room_scene
+from taichi_match import MapFileError, io
+from taichi_match.cli import main
+
+
+@pytest.fixture
+def pair(tmp_path):
+    a = rasterize(room_scene, (130, 170), 0.05, (-4.1, -3.1))
+    b = rasterize(room_scene, (120, 160), 0.05, (-4.0, -3.0), pose_a2b=(0.15, -0.1, 0.05))
+    io.write_ros_map(a, tmp_path / "a.yaml")
+    io.write_ros_map(b, tmp_path / "b.yaml")
+    return tmp_path / "a.yaml", tmp_path / "b.yaml"
+
+
+def snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def merge(a, b, out, *extra):
+    return main(["merge", str(a), str(b), "--pose", "0.15", "-0.1", "0.05", "-o", str(out), *extra])
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. merge -o never writes over an input, never clashes, never replaces without --force
+
+
+@pytest.mark.parametrize("target", ["a.yaml", "b.yaml", "a.pgm"])
+def test_merge_refuses_to_write_over_an_input(pair, tmp_path, capsys, target):
+    a, b = pair
+    out = tmp_path / target
+    if target == "a.pgm":                 # a YAML whose image would be A's image
+        out = tmp_path / "a.yml"
+    before = snapshot(tmp_path)
+    assert merge(a, b, out, "--force") == 2
+    assert "input" in capsys.readouterr().err
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("name", ["merged.pgm", "merged.png", "", "out/", ".", "merged"])
+def test_merge_output_must_name_a_yaml_and_nothing_is_left_behind(pair, tmp_path, capsys, name):
+    a, b = pair
+    before = snapshot(tmp_path)
+    out = str(tmp_path / name) if name else ""
+    assert merge(a, b, out) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("taichi-match: error:") and "Traceback" not in err
+    assert snapshot(tmp_path) == before
+
+
+def test_merge_replaces_an_existing_output_only_with_force(pair, tmp_path, capsys):
+    a, b = pair
+    out = tmp_path / "m.yaml"
+    assert merge(a, b, out) == 0
+    first = snapshot(tmp_path)
+    assert merge(a, b, out) == 2 and "--force" in capsys.readouterr().err
+    assert snapshot(tmp_path) == first
+    assert merge(a, b, out, "--force") == 0
+    assert io.read_ros_map(out).shape == io.read_ros_map(tmp_path / "m.yaml").shape
+    assert sorted(snapshot(tmp_path)) == sorted(first)          # no stray temporary files
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. an interrupted write leaves the old map or the new one, whole
+
+
+def two_maps():
+    old = rasterize(room_scene, (60, 80), 0.05, (-1.0, -1.0))
+    new = rasterize(room_scene, (90, 70), 0.1, (-3.0, -2.0))
+    return old, new
+
+
+def same_map(grid, other):
+    return (grid.shape == other.shape and grid.resolution == other.resolution and grid.origin == other.origin
+            and np.array_equal(np.isnan(grid.prob), np.isnan(other.prob)))
+
+
+@pytest.mark.parametrize("moment", range(6))
+def test_a_signal_at_any_moment_of_the_write_is_delivered_after_it(tmp_path, monkeypatch, moment):
+    # moments: before the image's temporary file, before the YAML's, before the image's rename,
+    # after it (the new image beside the old YAML), before the YAML's rename, after both
+    old, new = two_maps()
+    path = tmp_path / "m.yaml"
+    io.write_ros_map(old, path)
+    calls = {"n": 0}
+
+    def hook():
+        if calls["n"] == moment:
+            os.kill(os.getpid(), signal.SIGINT)
+        calls["n"] += 1
+
+    copy, replace = io._temporary_copy, os.replace
+
+    def temporary_copy(*args):
+        hook()
+        return copy(*args)
+
+    def replace_then_hook(*args):
+        hook()
+        replace(*args)
+        hook()
+
+    monkeypatch.setattr(io, "_temporary_copy", temporary_copy)
+    monkeypatch.setattr(io.os, "replace", replace_then_hook)
+    with pytest.raises(KeyboardInterrupt):
+        io.write_ros_map(new, path)
+        for _ in range(100):                     # the held-back signal arrives within a few bytecodes
+            pass
+    monkeypatch.undo()
+    assert same_map(io.read_ros_map(path), new)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pgm", "m.yaml"]
+
+
+@pytest.mark.parametrize("failing", [0, 1])
+def test_a_failed_write_leaves_the_old_map_and_no_temporary_file(tmp_path, monkeypatch, failing):
+    old, new = two_maps()
+    path = tmp_path / "m.yaml"
+    io.write_ros_map(old, path)
+    before = snapshot(tmp_path)
+    copy, calls = io._temporary_copy, {"n": 0}
+
+    def temporary_copy(*args):
+        calls["n"] += 1
+        if calls["n"] - 1 == failing:
+            raise OSError(28, "No space left on device")
+        return copy(*args)
+
+    monkeypatch.setattr(io, "_temporary_copy", temporary_copy)
+    with pytest.raises(MapFileError, match="No space left"):
+        io.write_ros_map(new, path)
+    assert snapshot(tmp_path) == before
+
+
+def test_sigterm_during_cli_merges_leaves_an_old_or_a_new_map(tmp_path):
+    # a real process, killed by SIGTERM at several moments of repeated merges into one output
+    a = rasterize(room_scene, (400, 500), 0.02, (-4.1, -3.1))
+    b = rasterize(room_scene, (380, 480), 0.02, (-4.0, -3.0), pose_a2b=(0.15, -0.1, 0.05))
+    io.write_ros_map(a, tmp_path / "a.yaml")
+    io.write_ros_map(b, tmp_path / "b.yaml")
+    out = tmp_path / "m.yaml"
+
+    def script(*poses):
+        return textwrap.dedent(f"""
+            from taichi_match.cli import main
+            for pose in {poses!r}:
+                main(["merge", {str(tmp_path / "a.yaml")!r}, {str(tmp_path / "b.yaml")!r}, "--pose", pose, "-0.1",
+                      "0.05", "-o", {str(out)!r}, "--force"])
+        """)
+
+    maps = []
+    for pose in ("0.15", "3.15"):
+        subprocess.run([sys.executable, "-c", script(pose)], check=True, capture_output=True, timeout=300)
+        maps.append(io.read_ros_map(out))
+    assert not same_map(*maps)
+    for delay in (0.05, 0.3, 0.6, 0.9, 1.2, 1.5, 2.0, 2.5):
+        proc = subprocess.Popen([sys.executable, "-c", script("0.15", "3.15", "0.15", "3.15")],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            proc.wait(timeout=delay)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
+        now = io.read_ros_map(out)                  # loads, and is one of the two maps
+        assert same_map(now, maps[0]) or same_map(now, maps[1])
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pgm", "a.yaml", "b.pgm", "b.yaml", "m.pgm", "m.yaml"]
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. exit codes: 130 on Ctrl-C, quiet on a closed pipe, one line for anything unexpected
+
+
+@pytest.mark.parametrize("exc, code, says", [(KeyboardInterrupt(), 130, "interrupted"),
+                                             (MemoryError(), 2, "out of memory"),
+                                             (RecursionError("too deep"), 2, "RecursionError: too deep"),
+                                             (OSError(5, "Input/output error"), 2, "Input/output error")])
+def test_exit_codes_for_what_a_command_may_raise(pair, monkeypatch, capsys, exc, code, says):
+    from taichi_match import cli
+
+    def boom(args):
+        raise exc
+
+    monkeypatch.setattr(cli, "_align", boom)
+    a, b = pair
+    assert main(["align", str(a), str(b), "--initial", "0", "0", "0"]) == code
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err and err.count("\n") == 1
+
+
+def test_a_closed_pipe_ends_the_command_quietly(pair):
+    a, b = pair
+    proc = subprocess.run(f"{sys.executable} -m taichi_match.cli align {a} {b} --initial 0 0 0 --json | head -c 1",
+                          shell=True, capture_output=True, text=True, timeout=300)
+    assert proc.stdout == "{" and "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr
