@@ -53,7 +53,9 @@ _TRUNCATE = 3.0
 def gaussian_filter(stack, sigma):
     """``scipy.ndimage.gaussian_filter(a, sigma, mode="constant", truncate=3)`` of each 2-D array
     of ``stack`` (shape (k, rows, cols)): the normalised, truncated Gaussian, zeros outside."""
-    radius = int(_TRUNCATE * sigma + 0.5)
+    # beyond the map's own extent a wider kernel changes nothing (zeros outside): a blur of a
+    # million cells costs no more than one as wide as the map
+    radius = int(min(_TRUNCATE * sigma + 0.5, max(stack.shape[1:])))
     if 2 * radius + 1 < _FFT_MIN_TAPS:
         return np.stack([ndimage.gaussian_filter(a, sigma, mode="constant", truncate=_TRUNCATE) for a in stack])
     taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)

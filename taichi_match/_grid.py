@@ -145,6 +145,8 @@ def _check_prob(prob):
                               f"cells (the kernels index cells with 32-bit integers); crop or coarsen it")
     try:
         arr = np.array(arr, dtype=np.float64, copy=True)
+        if np.ma.isMaskedArray(prob):            # masked cells are unknown (np.asarray drops the mask)
+            arr[np.ma.getmaskarray(prob)] = np.nan
     except MemoryError as exc:
         raise InvalidMapError(f"not enough memory for a map of {arr.shape[0]} x {arr.shape[1]} cells "
                               f"({arr.size * 8 / 2**30:.1f} GiB as float64); crop or coarsen it") from exc

@@ -45,6 +45,7 @@ CALIBRATED_COVARIANCE_SCALE = 11.0
 ENTRY_RADIUS_CELLS = 4.0          # middle levels
 ENTRY_RADIUS_CELLS_FINEST = 1.0   # the given maps
 XTOL_DEFAULT = {"newton": 0.25, "bfgs": 0.05}
+MAX_OPTION = 1e9                 # metres (blur, steps), metres per radian, K: far beyond any use, short of overflow
 OPTIMIZERS = tuple(XTOL_DEFAULT)
 INTERPOLATIONS = ("nearest", "bilinear")
 EVIDENCE = ("trinary", "probability")
@@ -135,8 +136,13 @@ class MatchOptions:
             raise InvalidOptionError(f"unknown_cost must be in [0, 1]; got {self.unknown_cost!r}")
         if self.blur_growth > 16.0:
             raise InvalidOptionError(f"blur_growth must be at most 16; got {self.blur_growth!r}")
-        for name in ("blur", "prior_weight_per_cell", "gtol", "covariance_scale", "refine_xtol"):
+        for name in ("blur", "prior_weight_per_cell", "gtol", "refine_xtol"):
             _check_number(name, getattr(self, name), minimum=0.0)
+        _check_number("covariance_scale", self.covariance_scale, minimum=0.0, strict=True)
+        for name in ("blur", "rotation_scale", "prior_weight", "prior_weight_per_cell", "step", "max_step"):
+            value = getattr(self, name)
+            if value is not None and isinstance(value, (int, float, np.integer, np.floating)) and value > MAX_OPTION:
+                raise InvalidOptionError(f"{name} must be at most {MAX_OPTION:g}; got {value!r}")
         if self.xtol is not None:
             _check_number("xtol", self.xtol, minimum=0.0)
         if self.prior_weight is not None:

@@ -19,10 +19,13 @@ import contextlib
 import os
 import re
 import signal
+import stat
 import struct
 import tempfile
 import threading
+import zipfile
 import zlib
+from io import BytesIO as io_bytes
 
 import numpy as np
 
@@ -31,10 +34,14 @@ from ._grid import GridMap
 
 __all__ = [
     "read_ros_map", "write_ros_map", "read_image", "write_image", "to_occupancy_grid", "from_occupancy_grid",
-    "save_npz", "load_npz", "save_npy", "load_npy", "load_map",
+    "save_npz", "load_npz", "save_npy", "load_npy", "load_map", "MAX_MAP_CELLS", "MAX_FILE_BYTES", "MAX_YAML_BYTES",
 ]
 
 MODES = ("trinary", "scale", "raw")
+# Limits on what a map file may hold, checked before anything of that size is read or inflated:
+MAX_MAP_CELLS = 2**28          # cells of a map read from a file (16384 x 16384; its float64 copy is 2 GiB)
+MAX_FILE_BYTES = 2**31         # bytes of an image or array file
+MAX_YAML_BYTES = 2**20         # bytes of a map's YAML
 
 
 # ---------------------------------------------------------------------------------------------
@@ -59,11 +66,9 @@ def read_ros_map(yaml_path, *, occupied_thresh=None, free_thresh=None, negate=No
 
 def read_map_yaml(yaml_path):
     """The fields of a map_server YAML as a dict, with ``image`` resolved against the YAML's folder."""
+    data = _read_bounded(yaml_path, MAX_YAML_BYTES, "map YAML")
     try:
-        with open(yaml_path, encoding="utf-8") as f:
-            text = f.read()
-    except OSError as exc:
-        raise MapFileError(f"cannot read map YAML {yaml_path!r}: {exc.strerror or exc}") from exc
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise MapFormatError(f"{yaml_path}: not a text YAML file ({exc})") from exc
     meta = {}
@@ -110,6 +115,8 @@ def _parse_scalar(text, path, number):
         if not (text.startswith("[") and text.endswith("]")):
             raise MapFormatError(f"{path}, line {number}: unbalanced list {text!r}")
         items = [t.strip() for t in text[1:-1].split(",") if t.strip()]
+        if any(t.startswith("[") or t.endswith("]") for t in items):
+            raise MapFormatError(f"{path}, line {number}: nested lists are not map_server YAML")
         return [_parse_scalar(t, path, number) for t in items]
     if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
         return text[1:-1]
@@ -220,6 +227,9 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
 def _replace_files(contents):
     """Write each (path, bytes) to a temporary file beside it, then rename them over the paths in
     order, signals held back (``_signals_held``); on any failure the temporary files go."""
+    for path, _ in contents:                     # before anything is written: all or nothing
+        if os.path.lexists(path) and not os.path.isfile(path):
+            raise MapFileError(f"cannot write {path!r}: it exists and is not a regular file")
     temporary = []
     try:
         with _signals_held():
@@ -278,16 +288,38 @@ def _signals_held(signums=("SIGINT", "SIGTERM", "SIGHUP")):
 
 def read_image(path):
     """An image as a uint8 array (rows, cols) or (rows, cols, channels), first row at the top."""
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as exc:
-        raise MapFileError(f"cannot read image {path!r}: {exc.strerror or exc}") from exc
+    data = _read_bounded(path, MAX_FILE_BYTES, "image")
     if data[:2] in (b"P5", b"P2"):
         return _read_pgm(data, path)
     if data[:8] == b"\x89PNG\r\n\x1a\n":
         return _read_png(data, path)
     raise MapFormatError(f"{path}: not a PGM (P2/P5) or PNG image")
+
+
+def _read_bounded(path, limit, what):
+    """The bytes of ``path``, a regular file of at most ``limit`` bytes (a FIFO, a device or a
+    directory is refused before it is opened: reading one could block or never end)."""
+    try:
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode):
+            raise MapFileError(f"cannot read {what} {os.fspath(path)!r}: not a regular file")
+        if info.st_size > limit:
+            raise MapFileError(f"cannot read {what} {os.fspath(path)!r}: {info.st_size} bytes, more than the "
+                               f"limit of {limit}")
+        with open(path, "rb") as f:
+            data = f.read(info.st_size + 1)      # (a read of limit + 1 would allocate that much first)
+    except MapFileError:
+        raise
+    except OSError as exc:
+        raise MapFileError(f"cannot read {what} {os.fspath(path)!r}: {exc.strerror or exc}") from exc
+    if len(data) > info.st_size:
+        raise MapFileError(f"cannot read {what} {os.fspath(path)!r}: it grew while it was read")
+    return data
+
+
+def _check_size(width, height, path):
+    if width * height > MAX_MAP_CELLS:
+        raise MapFormatError(f"{path}: a {width} x {height} image is larger than the limit of {MAX_MAP_CELLS} cells")
 
 
 def _read_pgm(data, path):
@@ -304,11 +336,17 @@ def _read_pgm(data, path):
         raise MapFormatError(f"{path}: bad PGM header {fields!r}") from exc
     if width < 1 or height < 1 or not 0 < maxval < 65536:
         raise MapFormatError(f"{path}: bad PGM size {width}x{height} or maxval {maxval}")
+    _check_size(width, height, path)
     if data[:2] == b"P2":
-        values = np.array(data[pos:].split(), dtype=np.int64)
+        try:
+            values = np.array(data[pos:].split()[:width * height], dtype=np.int64)
+        except (ValueError, OverflowError) as exc:
+            raise MapFormatError(f"{path}: a P2 pixel is not a number ({exc})") from exc
         if values.size < width * height:
             raise MapFormatError(f"{path}: truncated PGM: {values.size} of {width * height} pixels")
-        pixels = values[:width * height]
+        if values.min() < 0 or values.max() > maxval:
+            raise MapFormatError(f"{path}: P2 pixel values must lie in 0..{maxval}")
+        pixels = values
     else:
         pos += 1                                                   # the single whitespace after maxval
         dtype = np.dtype(">u2") if maxval > 255 else np.dtype(np.uint8)
@@ -331,6 +369,8 @@ def _read_png(data, path):
         if len(body) < length:
             raise MapFormatError(f"{path}: truncated PNG chunk {kind!r}")
         if kind == b"IHDR":
+            if length != 13:
+                raise MapFormatError(f"{path}: PNG header of {length} bytes, not 13")
             header = struct.unpack(">IIBBBBB", body)
         elif kind == b"IDAT":
             chunks.append(body)
@@ -344,11 +384,15 @@ def _read_png(data, path):
         raise MapFormatError(f"{path}: unsupported PNG (bit depth {depth}, colour type {colour}, "
                              f"interlace {interlace}); save it as 8-bit grey/RGB(A), not interlaced")
     channels = _PNG_CHANNELS[colour]
-    try:
-        raw = zlib.decompress(b"".join(chunks))
+    _check_size(width, height, path)
+    stride = width * channels
+    try:                     # inflated no further than the header declares (a zlib bomb stops there)
+        inflate = zlib.decompressobj()
+        raw = inflate.decompress(b"".join(chunks), height * (stride + 1))
     except zlib.error as exc:
         raise MapFormatError(f"{path}: corrupt PNG data ({exc})") from exc
-    stride = width * channels
+    if inflate.unconsumed_tail:
+        raise MapFormatError(f"{path}: more PNG data than its {width} x {height} header declares")
     if len(raw) < height * (stride + 1):
         raise MapFormatError(f"{path}: truncated PNG data")
     rows = np.frombuffer(raw, np.uint8, count=height * (stride + 1)).reshape(height, stride + 1)
@@ -445,13 +489,26 @@ def save_npz(grid: GridMap, path):
 
 def load_npz(path) -> GridMap:
     """Load a map saved by ``save_npz``."""
+    data = _read_bounded(path, MAX_FILE_BYTES, "map")
     try:
-        with np.load(path, allow_pickle=False) as f:
+        with zipfile.ZipFile(io_bytes(data)) as archive:
+            for name in archive.namelist():          # the arrays' declared sizes, before inflating them
+                with archive.open(name) as member:
+                    version = np.lib.format.read_magic(member)
+                    if version not in ((1, 0), (2, 0)):
+                        raise MapFormatError(f"{path}: unsupported .npy version {version} in {name}")
+                    read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                                   else np.lib.format.read_array_header_2_0)
+                    shape, _, _ = read_header(member)
+                if np.prod(shape, dtype=np.float64) > MAX_MAP_CELLS:
+                    raise MapFormatError(f"{path}: an array of shape {shape}, more than the limit of "
+                                         f"{MAX_MAP_CELLS} cells")
+        with np.load(io_bytes(data), allow_pickle=False) as f:
             return GridMap(f["prob"], float(f["resolution"]), tuple(f["origin"]))
-    except OSError as exc:
-        raise MapFileError(f"cannot read {path!r}: {exc}") from exc
-    except (KeyError, ValueError, zlib.error) as exc:
-        raise MapFormatError(f"{path}: not a taichi_match .npz map ({exc})") from exc
+    except MapFormatError:
+        raise
+    except (KeyError, ValueError, TypeError, OSError, EOFError, zlib.error, zipfile.BadZipFile) as exc:
+        raise MapFormatError(f"{path}: not a taichi_match .npz map ({type(exc).__name__}: {exc})") from exc
 
 
 def save_npy(grid: GridMap, path):
@@ -465,11 +522,10 @@ def save_npy(grid: GridMap, path):
 
 def load_npy(path, *, resolution, origin=(0.0, 0.0, 0.0)) -> GridMap:
     """Load a .npy array: int8 occupancy percent (-1 unknown), or float probabilities (NaN unknown)."""
+    data = _read_bounded(path, MAX_FILE_BYTES, "map")
     try:
-        arr = np.load(path, allow_pickle=False)
-    except OSError as exc:
-        raise MapFileError(f"cannot read {path!r}: {exc}") from exc
-    except ValueError as exc:
+        arr = np.load(io_bytes(data), allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
         raise MapFormatError(f"{path}: not a NumPy array file ({exc})") from exc
     if np.issubdtype(arr.dtype, np.integer):
         return from_occupancy_grid(arr, resolution, origin)

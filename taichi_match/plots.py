@@ -1,7 +1,10 @@
 """Pictures of maps, matches and surfaces (matplotlib, an optional dependency: ``[plots]``)."""
 
+import os
+
 import numpy as np
 
+from ._errors import InvalidOptionError
 from ._grid import GridMap
 
 __all__ = ["map_rgba", "draw_map", "draw_overlay", "save_overlay", "save_surface", "save_maps"]
@@ -80,7 +83,11 @@ def draw_overlay(ax, a: GridMap, b: GridMap, pose, *, covariance=None, title=Non
 
 
 def save_overlay(path, a: GridMap, b: GridMap, initial_pose, result, *, title=""):
-    """Two panels, as the paper's Figs. 6-9: the initial setting and the final solution."""
+    """Two panels, as the paper's Figs. 6-9: the initial setting and the final solution, saved to
+    ``path``, whose extension (.png, .pdf, .svg) says the format."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if ext not in (".png", ".pdf", ".svg") or os.path.isdir(path):
+        raise InvalidOptionError(f"the picture must be a .png, .pdf or .svg file; got {os.fspath(path)!r}")
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
     x, y, t = initial_pose

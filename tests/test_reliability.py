@@ -202,3 +202,159 @@ def test_a_closed_pipe_ends_the_command_quietly(pair):
     proc = subprocess.run(f"{sys.executable} -m taichi_match.cli align {a} {b} --initial 0 0 0 --json | head -c 1",
                           shell=True, capture_output=True, text=True, timeout=300)
     assert proc.stdout == "{" and "Traceback" not in proc.stderr and "Error" not in proc.stderr, proc.stderr
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. hostile files: bounded reads, our own errors
+
+
+def yaml_for(tmp_path, image, origin="[0.0, 0.0, 0.0]"):
+    path = tmp_path / "m.yaml"
+    path.write_text(f"image: {image}\nresolution: 0.05\norigin: {origin}\n")
+    return path
+
+
+def test_an_image_that_is_a_fifo_or_a_device_is_refused_without_reading(tmp_path):
+    os.mkfifo(tmp_path / "fifo.pgm")
+    script = textwrap.dedent(f"""
+        from taichi_match import io, MapFileError
+        for image in ({str(tmp_path / "fifo.pgm")!r}, "/dev/zero", "/dev/urandom"):
+            (open({str(tmp_path / "m.yaml")!r}, "w")).write(f"image: {{image}}\\nresolution: 0.05\\norigin: [0, 0, 0]\\n")
+            try:
+                io.read_ros_map({str(tmp_path / "m.yaml")!r})
+            except MapFileError as exc:
+                assert "not a regular file" in str(exc), exc
+            else:
+                raise SystemExit("no error")
+    """)
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+
+
+def png_file(path, width, height, data, header_length=13):
+    import struct
+    import zlib
+
+    def chunk(kind, body):
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)[:header_length]
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", data) + chunk(b"IEND", b""))
+
+
+def test_a_png_bomb_is_not_inflated_past_its_header(tmp_path):
+    import time
+    import tracemalloc
+    import zlib
+
+    bomb = zlib.compressobj(9)
+    data = b"".join(bomb.compress(bytes(2**24)) for _ in range(64)) + bomb.flush()     # 1 GiB of zeros
+    assert len(data) < 2**21
+    png_file(tmp_path / "bomb.png", 10, 10, data)
+    tracemalloc.start()
+    start = time.perf_counter()
+    with pytest.raises(io.MapFormatError, match="more PNG data than"):
+        io.read_image(str(tmp_path / "bomb.png"))
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert time.perf_counter() - start < 5.0 and peak < 64 * 2**20, peak
+
+
+@pytest.mark.parametrize("case", ["ihdr", "huge", "p2-range", "p2-text", "deep-origin", "npz-cut", "npz-huge"])
+def test_hostile_map_files_raise_our_errors(tmp_path, case):
+    import zlib
+
+    from taichi_match import MapFormatError, TaichiMatchError
+
+    if case == "ihdr":
+        png_file(tmp_path / "x.png", 4, 4, zlib.compress(bytes(20)), header_length=12)
+        call = lambda: io.read_image(str(tmp_path / "x.png"))              # noqa: E731
+    elif case == "huge":
+        png_file(tmp_path / "x.png", 2**20, 2**20, zlib.compress(bytes(20)))
+        call = lambda: io.read_image(str(tmp_path / "x.png"))              # noqa: E731
+    elif case in ("p2-range", "p2-text"):
+        (tmp_path / "x.pgm").write_bytes(b"P2\n2 2\n255\n0 255 300 1\n" if case == "p2-range" else b"P2\n2 2\n255\n0 a 3 1\n")
+        call = lambda: io.read_image(str(tmp_path / "x.pgm"))              # noqa: E731
+    elif case == "deep-origin":
+        io.write_image(str(tmp_path / "x.pgm"), np.zeros((2, 2), np.uint8))
+        path = yaml_for(tmp_path, "x.pgm", origin="[" * 100_000 + "0" + "]" * 100_000)
+        call = lambda: io.read_ros_map(path)                               # noqa: E731
+    elif case == "npz-cut":
+        grid = rasterize(room_scene, (60, 80), 0.05, (-1.0, -1.0))
+        io.save_npz(grid, tmp_path / "x.npz")
+        data = (tmp_path / "x.npz").read_bytes()
+        (tmp_path / "x.npz").write_bytes(data[: len(data) // 2])
+        call = lambda: io.load_npz(tmp_path / "x.npz")                     # noqa: E731
+    else:                                   # an .npz whose array header declares 2**40 cells
+        import io as stdlib_io
+        import zipfile
+        buf = stdlib_io.BytesIO()
+        np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": (2**20, 2**20)})
+        with zipfile.ZipFile(tmp_path / "x.npz", "w", zipfile.ZIP_DEFLATED) as z:
+            z.writestr("prob.npy", buf.getvalue() + bytes(64))
+        call = lambda: io.load_npz(tmp_path / "x.npz")                     # noqa: E731
+    with pytest.raises(TaichiMatchError) as info:
+        call()
+    assert isinstance(info.value, (MapFormatError, io.MapFileError)), info.value
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. options and poses that imply absurd memory or overflow
+
+
+def test_options_that_would_overflow_or_exhaust_memory_are_refused_or_cheap(pair):
+    import taichi_match as tm
+    from taichi_match import InvalidOptionError, InvalidPoseError
+    from taichi_match.merge import merge_maps
+
+    a, b = (io.read_ros_map(p) for p in pair)
+    for bad in (dict(rotation_scale=1e300), dict(covariance_scale=0.0), dict(blur=1e300), dict(prior_weight=1e300)):
+        with pytest.raises(InvalidOptionError):
+            tm.MatchOptions(**bad)
+    # a blur far wider than the map is cut at the map's extent: no 2.6 TiB kernel
+    res = tm.match(a, b, (0.1, -0.1, 0.05), blur=1e6, blur_kind="gaussian", blur_growth=1.0)
+    assert np.all(np.isfinite(res.pose))
+    for pose in ((1e6, 0.0, 0.0), (1e300, 0.0, 0.0)):
+        with pytest.raises(InvalidPoseError, match="merged map"):
+            merge_maps(a, b, pose)
+
+
+def test_a_masked_array_keeps_its_mask_as_unknown_cells():
+    from taichi_match import GridMap
+
+    prob = np.ma.array(np.full((3, 4), 0.2), mask=np.zeros((3, 4), bool))
+    prob.mask[1, 2] = True
+    grid = GridMap(prob, 0.1)
+    assert np.isnan(grid.prob[1, 2]) and np.count_nonzero(np.isnan(grid.prob)) == 1
+
+
+@pytest.mark.parametrize("args", [["--pose", "1e6", "0", "0"], ["--pose", "1e300", "0", "0"]])
+def test_merge_with_an_absurd_pose_exits_2(pair, tmp_path, capsys, args):
+    a, b = pair
+    assert main(["merge", str(a), str(b), *args, "-o", str(tmp_path / "m.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "merged map" in err and "Traceback" not in err
+    assert not (tmp_path / "m.yaml").exists()
+
+
+def test_plot_must_name_a_picture_file(pair, tmp_path, capsys):
+    a, b = pair
+    assert main(["align", str(a), str(b), "--initial", "0.15", "-0.1", "0.05", "--plot", str(tmp_path)]) == 2
+    assert ".png" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("extra", [["--resolution-a", "1e-9"], ["--blur", "1e6"], ["--blur", "1e6", "--blur-kind", "gaussian"]])
+def test_absurd_but_valid_options_give_a_reported_result_not_a_crash(pair, capsys, extra):
+    a, b = pair
+    code = main(["align", str(a), str(b), "--initial", "0.15", "-0.1", "0.05", *extra])
+    captured = capsys.readouterr()
+    assert code in (0, 1) and "Traceback" not in captured.err
+    assert "ACCEPTED" in captured.out           # the verdict line
+
+
+def test_merge_into_an_existing_directory_name_exits_2(pair, tmp_path, capsys):
+    a, b = pair
+    (tmp_path / "out.yaml").mkdir()
+    before = snapshot(tmp_path)
+    assert merge(a, b, tmp_path / "out.yaml", "--force") == 2
+    assert "Traceback" not in capsys.readouterr().err and snapshot(tmp_path) == before
