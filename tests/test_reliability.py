@@ -343,7 +343,8 @@ def test_plot_must_name_a_picture_file(pair, tmp_path, capsys):
     assert ".png" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("extra", [["--resolution-a", "1e-9"], ["--blur", "1e6"], ["--blur", "1e6", "--blur-kind", "gaussian"]])
+@pytest.mark.parametrize("extra", [["--resolution-a", "1e-9"], ["--resolution-a", "1e-9", "--blur-kind", "gaussian"],
+                                   ["--blur", "1e6"], ["--blur", "1e6", "--blur-kind", "gaussian"]])
 def test_absurd_but_valid_options_give_a_reported_result_not_a_crash(pair, capsys, extra):
     a, b = pair
     code = main(["align", str(a), str(b), "--initial", "0.15", "-0.1", "0.05", *extra])
