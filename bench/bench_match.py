@@ -23,7 +23,7 @@ import numpy as np
 
 import taichi_match as tm
 from taichi_match.reproduce import git_revision
-from taichi_match._cost import gradient_stencil, hessian_stencil
+from taichi_match._cost import gradient_stencil
 from taichi_match._prepared import make_engine
 from taichi_match.scenes import corridor
 

@@ -111,7 +111,6 @@ class CovarianceCheck:
     mean_error: np.ndarray
     errors: np.ndarray = field(repr=False)
     covariances: np.ndarray = field(repr=False)
-    nees_reference: float = float("nan")     # mean NEES on the test half with ``reference_scale``
 
     @property
     def consistent(self):
@@ -119,14 +118,12 @@ class CovarianceCheck:
 
 
 def covariance_check(matcher, grid, *, flip=0.002, drop=0.1, trials=200, seed=0, ranges=(0.5, 0.5, 0.5),
-                     scale=None, reference_scale=None, progress=None):
+                     scale=None, progress=None):
     """Match ``grid`` against noisy copies of itself (truth: y = theta = 0) from seeded initial poses.
 
     The first half of the trials calibrates the scale of the covariance (mean NEES = 2 on y and
     theta), unless ``scale`` is given; the second half tests it: the mean NEES should fall in the
     chi-square 95 % band. x runs along the corridor and carries no information, so it is left out.
-    With ``reference_scale`` (a scale calibrated earlier), its mean NEES on the test half is
-    reported too.
     """
     rng = np.random.default_rng(seed)
     errors, covs = [], []
@@ -147,7 +144,6 @@ def covariance_check(matcher, grid, *, flip=0.002, drop=0.1, trials=200, seed=0,
     n = trials - half
     nees = raw[test] / scale
     band = (stats.chi2.ppf(0.025, 2 * n) / n, stats.chi2.ppf(0.975, 2 * n) / n)
-    reference = float(np.mean(raw[test]) / reference_scale) if reference_scale else float("nan")
     return CovarianceCheck(dict(flip=flip, drop=drop), trials, scale, float(nees.mean()), band,
                            np.cov(errors[test].T), scale * np.linalg.inv(np.linalg.inv(covs[test]).mean(axis=0)),
-                           errors[test].mean(axis=0), errors, covs, reference)
+                           errors[test].mean(axis=0), errors, covs)
