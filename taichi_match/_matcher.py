@@ -19,7 +19,8 @@ from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
 from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, prior,
                     prior_hessian, prior_values)
-from ._covariance import RESIDUAL_EXPONENT, RESIDUAL_MIN, centroid_metric, covariance_floor, covariance_from_hessian, plateau_sd
+from ._covariance import (CALIBRATED_COVARIANCE_SCALE, calibrate, centroid_metric, covariance_floor,
+                          covariance_from_hessian, plateau_sd)
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
 from ._kernels import check_not_forked
@@ -30,15 +31,6 @@ from ._verdict import Evidence, compare_walls, evidence
 
 __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARIANCE_SCALE"]
 
-# The scale s of cov = s H(e)^-1 + floor (``_covariance.covariance_floor``, FLOOR_CELLS cells), fitted
-# on real laser data without trusting its reference trajectory (bench/calibrate_covariance.py):
-# for submaps i, i+1, i+2 the pose of i+2 in i by way of i+1 against the direct match (no
-# reference pose enters; 378 triplets) gives a mean NEES of 3.19 (band 2.76-3.25), and a real
-# map matched against itself (exact truth, the cell-sized plateau of e: 88 matches) 2.73 (band
-# 2.51-3.53). Where B is a resampled copy of A's own map (real-map crops) or was built from
-# simulated scans, the errors are 4 mm and the covariance is conservative (NEES 0.2 and 0.1);
-# s = 2 fitted there was 3 times too small on the real laser data. Valid for the default options.
-CALIBRATED_COVARIANCE_SCALE = 11.0
 
 # Trust region of the Newton driver on entering a finer level, in that level's cells: the
 # coarser level left the pose within a few of its own cells (measured in bench/TUNING.md).
@@ -278,9 +270,9 @@ class MatchResult:
 
     @property
     def calibrated_covariance(self):
-        """``s * residual**a * H(e)^-1 + covariance_floor`` (s ``CALIBRATED_COVARIANCE_SCALE``, a
-        ``_covariance.RESIDUAL_EXPONENT``): the covariance to put in a pose graph (see
-        ``CALIBRATED_COVARIANCE_SCALE`` for how it was fitted; valid for the default options)."""
+        """The covariance to put in a pose graph: ``H(e)^-1`` scaled with the residual, plus the
+        plateau's ``covariance_floor`` (``_covariance.calibrate``, where its fit is described;
+        valid for the default options)."""
         return calibrate(self.covariance / self.options.covariance_scale, self.residual, self.covariance_floor)
 
     # OptimizeResult-style aliases
@@ -563,12 +555,6 @@ class _LevelCost:
         rs = zs @ self._from_z.T
         e_values, _ = self.evaluate(rs, count="none")
         return e_values + prior_values(rs, self._r0, self.weight, self._rotation_scale)
-
-
-def calibrate(inverse_hessian, residual, floor):
-    """``s * max(residual, RESIDUAL_MIN)**RESIDUAL_EXPONENT * inverse_hessian + floor``, s being
-    ``CALIBRATED_COVARIANCE_SCALE`` (``_covariance``)."""
-    return CALIBRATED_COVARIANCE_SCALE * max(residual, RESIDUAL_MIN) ** RESIDUAL_EXPONENT * inverse_hessian + floor
 
 
 _DEFAULT = {}
