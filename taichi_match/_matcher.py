@@ -26,8 +26,8 @@ from ._grid import GridMap
 from ._kernels import check_not_forked
 from ._newton import minimize_newton
 from ._prepared import ENGINES, PreparedMap, make_engine
-from ._se2 import as_pose, inverse, transform_points, wrap_angle
-from ._verdict import Evidence, compare_walls, evidence
+from ._se2 import as_pose, wrap_angle
+from ._verdict import Evidence, compare_walls, evidence, placed_walls
 
 __all__ = ["MatchOptions", "MatchResult", "Matcher", "match", "CALIBRATED_COVARIANCE_SCALE"]
 
@@ -357,10 +357,11 @@ class Matcher:
             status = Status.NO_INFORMATION
         pose = np.array([r[0], r[1], wrap_angle(r[2])])
         walls_a, walls_b = prep_a.wall_distance, prep_b.wall_distance
-        comparison = compare_walls(walls_a, walls_b, pose)
+        b_in_a, a_in_b = placed = placed_walls(walls_a, walls_b, pose)
+        comparison = compare_walls(walls_a, walls_b, placed)
         residual = float(e) / max(comparison[0], 1)
-        plateau = min(plateau_sd(prep_a.grid, transform_points(pose, walls_b.centres)) * prep_a.resolution,
-                      plateau_sd(prep_b.grid, transform_points(inverse(pose), walls_a.centres)) * prep_b.resolution)
+        plateau = min(plateau_sd(prep_a.grid, b_in_a) * prep_a.resolution,
+                      plateau_sd(prep_b.grid, a_in_b) * prep_b.resolution)
         floor = covariance_floor(plateau, prep_b.centroid, prep_b.spread, pose[2])
         calibrated = calibrate(covariance / opts.covariance_scale, residual, floor)
         proof = evidence(comparison, pose, calibrated, degenerate, prep_b.centroid, prep_b.spread)

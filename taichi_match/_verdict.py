@@ -35,7 +35,7 @@ from scipy import ndimage
 from ._covariance import centroid_metric
 from ._se2 import inverse, transform_points
 
-__all__ = ["Evidence", "evidence", "compare_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
+__all__ = ["Evidence", "evidence", "compare_walls", "placed_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
            "MAX_CONFLICT", "MAX_UNCERTAINTY_M"]
 
 AGREE_CELLS = 2.0
@@ -86,11 +86,16 @@ class WallDistance:
         return out
 
 
-def compare_walls(walls_a: WallDistance, walls_b: WallDistance, pose):
-    """(walls compared, agreement, conflict) at ``pose`` (r_A2B) for maps with walls ``walls_a``,
-    ``walls_b`` (see the module docstring)."""
-    d = np.concatenate([walls_a.lookup(transform_points(pose, walls_b.centres)),
-                        walls_b.lookup(transform_points(inverse(pose), walls_a.centres))])
+def placed_walls(walls_a: WallDistance, walls_b: WallDistance, pose):
+    """(B's walls in A's frame, A's walls in B's frame) at ``pose`` (r_A2B)."""
+    return transform_points(pose, walls_b.centres), transform_points(inverse(pose), walls_a.centres)
+
+
+def compare_walls(walls_a: WallDistance, walls_b: WallDistance, placed):
+    """(walls compared, agreement, conflict) for maps with walls ``walls_a``, ``walls_b`` placed in
+    each other's frame by ``placed_walls`` (see the module docstring)."""
+    b_in_a, a_in_b = placed
+    d = np.concatenate([walls_a.lookup(b_in_a), walls_b.lookup(a_in_b)])
     d = d[~np.isnan(d)]
     n = len(d)
     return n, (float(np.mean(d <= AGREE_CELLS)) if n else 0.0), (float(np.mean(d > CONFLICT_CELLS)) if n else 1.0)

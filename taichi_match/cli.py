@@ -160,14 +160,10 @@ def _align(args):
 
 def _merge(args):
     from taichi_match import MapFileError
-    from taichi_match.io import read_map_yaml, write_ros_map
+    from taichi_match.io import read_map_yaml, ros_map_paths, write_ros_map
     from taichi_match.merge import merge_maps
 
-    output = args.output
-    base, ext = os.path.splitext(os.path.basename(output))
-    if ext.lower() not in (".yaml", ".yml") or not base:
-        raise MapFileError(f"-o must name the merged map's YAML, NAME.yaml (its image is NAME.pgm); got {output!r}")
-    image = os.path.join(os.path.dirname(os.path.abspath(output)), base + (".png" if args.mode == "scale" else ".pgm"))
+    output, image = ros_map_paths(args.output, args.mode)
     inputs = [args.map_a, args.map_b]
     inputs += [read_map_yaml(path)["image"] for path in inputs if path.lower().endswith((".yaml", ".yml"))]
     for target in (output, image):

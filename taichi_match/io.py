@@ -34,7 +34,7 @@ from ._grid import GridMap
 
 __all__ = [
     "read_ros_map", "write_ros_map", "read_image", "write_image", "to_occupancy_grid", "from_occupancy_grid",
-    "save_npz", "load_npz", "save_npy", "load_npy", "load_map", "MAX_MAP_CELLS", "MAX_FILE_BYTES", "MAX_YAML_BYTES",
+    "save_npz", "load_npz", "save_npy", "load_npy", "load_map", "ros_map_paths", "MAX_MAP_CELLS", "MAX_FILE_BYTES", "MAX_YAML_BYTES",
 ]
 
 MODES = ("trinary", "scale", "raw")
@@ -196,15 +196,8 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
     """
     if mode not in MODES:
         raise InvalidOptionError(f"mode must be one of {MODES}; got {mode!r}")
-    yaml_path = os.fspath(yaml_path)
-    base, ext = os.path.splitext(os.path.basename(yaml_path))
-    if ext.lower() not in (".yaml", ".yml") or not base:
-        raise MapFileError(f"the map's YAML must be named NAME.yaml or NAME.yml; got {yaml_path!r}")
-    image = image or base + (".png" if mode == "scale" else ".pgm")
-    folder = os.path.dirname(os.path.abspath(yaml_path))
-    image_path = os.path.join(folder, image)
-    if os.path.abspath(image_path) == os.path.abspath(yaml_path):
-        raise MapFileError(f"the image and the YAML would be the same file: {yaml_path!r}")
+    yaml_path, image_path = ros_map_paths(yaml_path, mode, image)
+    image = os.path.basename(image_path)
     p = grid.prob[::-1]                                           # top row first
     unknown = np.isnan(p)
     q = np.nan_to_num(p, nan=0.0)
@@ -222,6 +215,21 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
     text = (f"image: {image}\nresolution: {grid.resolution!r}\norigin: [{x0!r}, {y0!r}, {yaw!r}]\n"
             f"negate: 0\noccupied_thresh: {occupied_thresh!r}\nfree_thresh: {free_thresh!r}\nmode: {mode}\n")
     _replace_files([(image_path, _image_bytes(image_path, pixels)), (yaml_path, text.encode("utf-8"))])
+
+
+def ros_map_paths(yaml_path, mode="trinary", image=None):
+    """(YAML path, image path) that ``write_ros_map`` writes: the image is named after the YAML
+    (``map.yaml`` -> ``map.pgm``, ``.png`` in scale mode) unless ``image`` is given, beside it.
+    The YAML's name must end in .yaml or .yml, so the two never clash."""
+    yaml_path = os.fspath(yaml_path)
+    base, ext = os.path.splitext(os.path.basename(yaml_path))
+    if ext.lower() not in (".yaml", ".yml") or not base:
+        raise MapFileError(f"the map's YAML must be named NAME.yaml or NAME.yml; got {yaml_path!r}")
+    image_path = os.path.join(os.path.dirname(os.path.abspath(yaml_path)),
+                              image or base + (".png" if mode == "scale" else ".pgm"))
+    if os.path.abspath(image_path) == os.path.abspath(yaml_path):
+        raise MapFileError(f"the image and the YAML would be the same file: {yaml_path!r}")
+    return yaml_path, image_path
 
 
 def _replace_files(contents):

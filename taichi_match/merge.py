@@ -5,10 +5,9 @@ import numpy as np
 from ._errors import InvalidPoseError
 from ._grid import GridMap
 from ._se2 import as_pose, inverse, transform_points
+from .io import MAX_MAP_CELLS
 
-__all__ = ["merge_maps", "sample", "MAX_MERGED_CELLS"]
-
-MAX_MERGED_CELLS = 2**28     # the merged map's cells (a pose far off would ask for a map of terabytes)
+__all__ = ["merge_maps", "sample"]
 
 _CLIP = 1e-3        # probabilities are clipped to [1e-3, 1 - 1e-3] before log-odds
 
@@ -40,9 +39,9 @@ def merge_maps(a: GridMap, b: GridMap, pose_a2b, *, resolution=None) -> GridMap:
     lo = anchor + np.floor((corners.min(axis=0) - anchor) / res + 1e-9) * res
     hi = anchor + np.ceil((corners.max(axis=0) - anchor) / res - 1e-9) * res
     size = (hi - lo) / res
-    if not np.all(np.isfinite(size)) or np.prod(np.maximum(np.rint(size), 1.0)) > MAX_MERGED_CELLS:
+    if not np.all(np.isfinite(size)) or np.prod(np.maximum(np.rint(size), 1.0)) > MAX_MAP_CELLS:
         raise InvalidPoseError(f"the merged map would span {hi[0] - lo[0]:.4g} x {hi[1] - lo[1]:.4g} m, "
-                               f"more than {MAX_MERGED_CELLS} cells of {res} m: is the pose {tuple(pose)} right?")
+                               f"more than {MAX_MAP_CELLS} cells of {res} m: is the pose {tuple(pose)} right?")
     cols, rows = np.maximum(np.rint(size).astype(int), 1)
     out = GridMap(np.zeros((rows, cols)), res, (lo[0], lo[1]))
     centres = out.cell_centres()

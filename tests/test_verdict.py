@@ -8,7 +8,8 @@ import taichi_match as tm
 from conftest import rasterize, room_scene
 from taichi_match import GridMap, Matcher, MatchOptions
 from taichi_match._verdict import (AGREE_CELLS, CONFLICT_CELLS, MAX_CONFLICT, MAX_UNCERTAINTY_M, MIN_AGREEMENT,
-                                   MIN_WALLS, Evidence, WallDistance, compare_walls, evidence)
+                                   MIN_WALLS, Evidence, WallDistance, compare_walls, evidence,
+                                   placed_walls)
 
 TRUTH = (0.15, -0.1, 0.05)
 RES = 0.05
@@ -58,7 +59,8 @@ def wall_evidence(walls_a, walls_b, pose, covariance=None, degenerate=None, cent
     covariance = np.zeros((3, 3)) if covariance is None else covariance
     degenerate = np.zeros((0, 3)) if degenerate is None else degenerate
     pose = np.asarray(pose, dtype=np.float64)
-    return evidence(compare_walls(walls_a, walls_b, pose), pose, covariance, degenerate, centroid, spread)
+    return evidence(compare_walls(walls_a, walls_b, placed_walls(walls_a, walls_b, pose)), pose, covariance,
+                    degenerate, centroid, spread)
 
 
 # ---------------------------------------------------------------------------------------------
