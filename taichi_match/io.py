@@ -197,7 +197,7 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
     if mode not in MODES:
         raise InvalidOptionError(f"mode must be one of {MODES}; got {mode!r}")
     yaml_path, image_path = ros_map_paths(yaml_path, mode, image)
-    image = os.path.basename(image_path)
+    image = os.path.relpath(image_path, os.path.dirname(os.path.abspath(yaml_path)))    # as the YAML names it
     p = grid.prob[::-1]                                           # top row first
     unknown = np.isnan(p)
     q = np.nan_to_num(p, nan=0.0)

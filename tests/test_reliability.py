@@ -359,3 +359,11 @@ def test_merge_into_an_existing_directory_name_exits_2(pair, tmp_path, capsys):
     before = snapshot(tmp_path)
     assert merge(a, b, tmp_path / "out.yaml", "--force") == 2
     assert "Traceback" not in capsys.readouterr().err and snapshot(tmp_path) == before
+
+
+def test_an_image_named_in_a_subfolder_is_written_there_and_named_so_in_the_yaml(tmp_path):
+    (tmp_path / "images").mkdir()
+    grid = rasterize(room_scene, (60, 80), 0.05, (-1.0, -1.0))
+    io.write_ros_map(grid, tmp_path / "m.yaml", image="images/m.pgm")
+    assert "image: images/m.pgm" in (tmp_path / "m.yaml").read_text()
+    assert same_map(io.read_ros_map(tmp_path / "m.yaml"), grid)
