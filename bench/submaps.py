@@ -189,21 +189,29 @@ def pct(pair):
 def protocol_table(path):
     """Per log and grid type, on consecutive and loop pairs only (the issue's protocol), from the
     records of a run: verdict precision and recall over all guesses, mean NEES (as it is and with
-    the reference's error) over correct good and wide matches."""
-    records = [json.loads(line) for line in open(path)]
-    records = [r for r in records if r["pair"] != "disjoint"]
+    the reference's error) over correct good and wide matches; and the reference-free
+    ``cycle_nees`` of the log's triplets (which also use the disjoint pairs i, i+2)."""
+    everything = [json.loads(line) for line in open(path)]
+    records = [r for r in everything if r["pair"] != "disjoint"]
     keys = sorted({(r["log"], r["grids"]) for r in records}) + [("all", "both")]
     lines = ["", f"## Consecutive and loop pairs per log (the issue's protocol), from `{Path(path).name}`", "",
-             "| log | grids | good, correct | precision | recall | mean NEES (band, n) | with the reference's error |",
-             "|---|---|---|---|---|---|---|"]
+             "| log | grids | good, correct | precision | recall | mean NEES (band, n) | with the reference's error "
+             "| cycle NEES, no reference (band, n) |",
+             "|---|---|---|---|---|---|---|---|"]
+
+    def with_band(mean, n):
+        lo, hi = nees_band(n) if n else (float("nan"), float("nan"))
+        return f"{mean:.2f} ({lo:.2f}-{hi:.2f}, {n})"
+
     for log, grids in keys:
-        rows = [r for r in records if log == "all" or (r["log"] == log and r["grids"] == grids)]
+        def mine(r):
+            return log == "all" or (r["log"] == log and r["grids"] == grids)
+        rows = [r for r in records if mine(r)]
         s = summarise(rows, [])
         good = [r["correct"] for r in rows if r["guess"] == "good"]
-        mean, n = s["nees"]
-        lo, hi = nees_band(n) if n else (float("nan"), float("nan"))
         lines.append(f"| {log} | {grids} | {pct((sum(good), len(good)))} | {pct(s['precision'])} | {pct(s['recall'])} "
-                     f"| {mean:.2f} ({lo:.2f}-{hi:.2f}, {n}) | {s['nees_ref'][0]:.2f} |")
+                     f"| {with_band(*s['nees'])} | {s['nees_ref'][0]:.2f} "
+                     f"| {with_band(*cycle_nees([r for r in everything if mine(r)]))} |")
     return "\n".join(lines)
 
 
