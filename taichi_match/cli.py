@@ -181,6 +181,51 @@ def _merge(args):
     return EXIT_OK
 
 
+def _slam(args):
+    from taichi_match.logs import read_carmen, read_tum
+    from taichi_match.slam import Slam, SlamOptions, write_outputs
+
+    log = read_carmen(args.log)
+    options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
+                                               ("max_ray_length", args.max_ray)) if v is not None})
+    bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
+    result = Slam(options).run(log, progress=bar)
+    paths = write_outputs(result, args.out, source=args.log, force=args.force)
+    accepted, tried = result.scan_matches
+    seconds = sum(result.seconds.values())
+    print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
+          f"{accepted}/{tried}; loop closures {sum(l['accepted'] for l in result.loops)}/{len(result.loops)}")
+    if args.reference:
+        from taichi_match.evaluation import trajectory_errors
+
+        _, reference = read_tum(args.reference)
+        errors = trajectory_errors(result.poses, reference)
+        odometry = trajectory_errors(log.poses, reference)
+        print(f"ATE {errors['ate_m']:.3f} m {errors['ate_deg']:.2f} deg (odometry {odometry['ate_m']:.3f} m "
+              f"{odometry['ate_deg']:.2f} deg); RPE over 10 scans {errors['rpe_m']:.3f} m {errors['rpe_deg']:.2f} deg "
+              f"(odometry {odometry['rpe_m']:.3f} m {odometry['rpe_deg']:.2f} deg)")
+    for name in ("trajectory", "map", "image", "graph", "report"):
+        print(f"{name:10s} {paths[name]}")
+    return 0
+
+
+def _progress(label, total, enabled):
+    """A tqdm bar on stderr when tqdm is installed, else our one-line bar; ``bar(done, total)``."""
+    if not enabled:
+        return None
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _ProgressBar(label, True)
+    bar = tqdm(total=total, desc=label, unit="scan", file=sys.stderr)
+
+    def update(done, _total):
+        bar.update(done - bar.n)
+        if done >= _total:
+            bar.close()
+    return update
+
+
 def _add_map_arguments(parser):
     parser.add_argument("map_a", metavar="A.yaml", help="map A (map_server .yaml or .npz)")
     parser.add_argument("map_b", metavar="B.yaml", help="map B")
@@ -239,6 +284,17 @@ def main(argv=None):
     merge.add_argument("--force", action="store_true", help="replace an existing output (never an input)")
     merge.add_argument("--mode", choices=("trinary", "scale", "raw"), default="trinary")
     merge.set_defaults(func=_merge)
+    slam = sub.add_parser("slam", help="map a laser log: corrected trajectory, map, pose graph and report "
+                                       "(needs gtsam: pip install 'taichi-match[slam]')")
+    slam.add_argument("log", help="CARMEN log (.log, .clf, gzipped or not)")
+    slam.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+    slam.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
+    slam.add_argument("--reference", metavar="TUM", help="a reference trajectory: print ATE and RPE against it")
+    slam.add_argument("--submap-scans", type=int, metavar="N", help="scans per submap (even, default 10)")
+    slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
+    slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
+    slam.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    slam.set_defaults(func=_slam)
     args = parser.parse_args(argv)
     if getattr(args, "trials", 1) < 1 or getattr(args, "covariance_trials", 2) < 2:
         parser.error("--trials must be >= 1 and --covariance-trials >= 2")

@@ -31,7 +31,7 @@ import numpy as np
 
 from ._errors import LogFileError, LogFormatError
 
-__all__ = ["Scan", "LaserLog", "read_carmen", "read_tum", "write_tum"]
+__all__ = ["Scan", "LaserLog", "read_carmen", "write_carmen", "read_tum", "write_tum"]
 
 # Lines longer than this are refused (the longest real laser lines hold a few thousand numbers).
 _MAX_LINE = 1 << 20
@@ -195,6 +195,23 @@ def read_carmen(path, *, max_range=None) -> LaserLog:
         scans.append(Scan(float(timestamp), ranges, angles, pose, float(limit)))
     odo = np.array(odometry, dtype=np.float64).reshape(-1, 4)
     return LaserLog(tuple(scans), odo)
+
+
+def write_carmen(path, log: LaserLog):
+    """Write ``log``'s scans as CARMEN ``FLASER`` lines (both poses the scan's pose; ranges to the
+    millimetre). Their beams must follow FLASER's angles (see the module docstring), which is what
+    ``read_carmen`` gives them back."""
+    with open(path, "w", encoding="utf-8") as f:
+        f.write("# written by taichi_match.logs.write_carmen\n")
+        for scan in log.scans:
+            n = len(scan.ranges)
+            step = math.pi / n if n % 2 == 0 else math.pi / max(n - 1, 1)
+            if not np.allclose(scan.angles, -math.pi / 2 + np.arange(n) * step, atol=1e-9):
+                raise ValueError("FLASER lines hold scans over 180 degrees from -90 only")
+            x, y, theta = scan.pose
+            ranges = " ".join(f"{r:.3f}" for r in scan.ranges)
+            f.write(f"FLASER {n} {ranges} {x:.6f} {y:.6f} {theta:.6f} {x:.6f} {y:.6f} {theta:.6f} "
+                    f"{scan.timestamp:.6f} taichi_match {scan.timestamp:.6f}\n")
 
 
 def read_tum(path):

@@ -1,0 +1,148 @@
+"""The mapping loop on every log of ``../shared/logs`` against its reference trajectory (issue 12).
+
+For each log: ``taichi_match.slam.Slam`` at default options on the CARMEN log (odometry in the
+FLASER lines), then against ``NAME.reference.tum``:
+
+- ATE after one rigid SE(2) alignment and RPE over 10 scans, metres and degrees, beside the
+  odometry's (``taichi_match.evaluation``, checked against evo in the tests);
+- loop closures tried / accepted / wrong (wrong: the accepted relative pose of the two anchors
+  differs from the reference's by more than 0.2 m or 1 degree, Cartographer's criterion);
+- scan-to-submap matches accepted; wall time per scan, per stage; the front-end match's median
+  (preparing the new submap and scan included);
+- a picture per log: the trajectory and the reference over the map (``--plots DIR``).
+
+    python bench/slam.py                                   # table to stdout
+    python bench/slam.py --out bench/SLAM.md --plots bench/slam
+    python bench/slam.py --logs aces csail
+    python bench/slam.py --simulated                       # the simulated run of the README instead
+"""
+
+import argparse
+import datetime
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from taichi_match import compose, inverse, wrap_angle
+from taichi_match.evaluation import align_se2, trajectory_errors
+from taichi_match.logs import read_carmen, read_tum
+from taichi_match.slam import Slam
+
+LOGS = Path(__file__).resolve().parents[2] / "shared" / "logs"
+TARGETS = {"ate_m": 0.10, "ate_deg": 1.0, "rpe_m": 0.03, "rpe_deg": 0.3}
+
+
+def wrong_loops(loops, reference):
+    """Accepted loop closures whose relative pose is off the reference's by > 0.2 m or > 1 degree."""
+    out = 0
+    for loop in loops:
+        if loop["accepted"]:
+            a, b = loop["anchors"]
+            e = compose(inverse(compose(inverse(reference[a]), reference[b])), loop["pose"])
+            out += bool(np.hypot(e[0], e[1]) > 0.2 or abs(np.degrees(wrap_angle(e[2]))) > 1.0)
+    return out
+
+
+def run_one(name, log, reference, plots=None):
+    started = time.perf_counter()
+    result = Slam().run(log)
+    wall = time.perf_counter() - started
+    errors = trajectory_errors(result.poses, reference)
+    odometry = trajectory_errors(log.poses, reference)
+    row = dict(log=name, scans=len(log), **errors, **{f"odo_{k}": v for k, v in odometry.items()},
+               scan_accepted=result.scan_matches[0], scan_tried=result.scan_matches[1],
+               loops_tried=len(result.loops), loops_accepted=sum(lp["accepted"] for lp in result.loops),
+               loops_wrong=wrong_loops(result.loops, reference), ms_per_scan=1e3 * wall / len(log),
+               match_ms=1e3 * float(np.median(result.match_seconds)),
+               stages={k: 1e3 * v / len(log) for k, v in result.seconds.items()})
+    if plots:
+        picture(Path(plots) / f"{name}.png", name, result, log, reference)
+    return row
+
+
+def picture(path, name, result, log, reference):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    grid = result.map
+    x0, y0 = grid.origin
+    h, w = grid.shape
+    ref = align_se2(reference, result.poses)            # the reference in the map's frame
+    odo = align_se2(log.poses, result.poses)
+    fig, ax = plt.subplots(figsize=(8, 8))
+    ax.imshow(np.nan_to_num(1.0 - grid.prob, nan=0.8), cmap="gray", vmin=0, vmax=1, origin="lower",
+              extent=(x0, x0 + w * grid.resolution, y0, y0 + h * grid.resolution))
+    ax.plot(odo[:, 0], odo[:, 1], color="tab:orange", lw=0.8, label="odometry")
+    ax.plot(ref[:, 0], ref[:, 1], color="tab:green", lw=1.2, label="reference")
+    ax.plot(result.poses[:, 0], result.poses[:, 1], color="tab:red", lw=0.8, ls="--", label="taichi-match slam")
+    ax.set_title(name)
+    ax.legend(loc="best", fontsize=8)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def table(rows):
+    def flag(row, key):
+        return "" if row[key] <= TARGETS[key] else " *"
+    lines = ["| log | scans | ATE m | ATE deg | RPE10 m | RPE10 deg | odometry ATE m / deg | odometry RPE10 m / deg "
+             "| ATE / odometry ATE | scan matches accepted | loops tried / accepted / wrong | ms per scan "
+             "| front-end match median ms |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(
+            f"| {r['log']} | {r['scans']} | {r['ate_m']:.3f}{flag(r, 'ate_m')} | {r['ate_deg']:.2f}{flag(r, 'ate_deg')} "
+            f"| {r['rpe_m']:.3f}{flag(r, 'rpe_m')} | {r['rpe_deg']:.2f}{flag(r, 'rpe_deg')} "
+            f"| {r['odo_ate_m']:.2f} / {r['odo_ate_deg']:.1f} | {r['odo_rpe_m']:.3f} / {r['odo_rpe_deg']:.2f} "
+            f"| {r['ate_m'] / r['odo_ate_m']:.3f} | {r['scan_accepted']}/{r['scan_tried']} "
+            f"| {r['loops_tried']} / {r['loops_accepted']} / {r['loops_wrong']} | {r['ms_per_scan']:.0f} "
+            f"| {r['match_ms']:.1f} |")
+    stages = list(rows[0]["stages"])
+    lines += ["", "Wall time per scan by stage (ms):", "", "| log | " + " | ".join(stages) + " |",
+              "|---|" + "---|" * len(stages)]
+    lines += [f"| {r['log']} | " + " | ".join(f"{r['stages'][s]:.1f}" for s in stages) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--logs", nargs="*", help="log names (default: all in ../shared/logs)")
+    parser.add_argument("--simulated", action="store_true", help="the simulated run (taichi_match.simulate)")
+    parser.add_argument("--out", help="also write the table (markdown) here")
+    parser.add_argument("--plots", help="folder for one picture per log")
+    args = parser.parse_args()
+    from taichi_match.reproduce import git_revision
+
+    started = time.perf_counter()
+    rows = []
+    if args.simulated:
+        from taichi_match.simulate import simulate_log
+
+        run = simulate_log(0)
+        rows.append(run_one("simulated", run.log, run.truth, args.plots))
+    else:
+        if not LOGS.is_dir():
+            raise SystemExit(f"{LOGS} not found: the laser logs live in ../shared/logs")
+        for name in args.logs or sorted(p.name for p in LOGS.iterdir() if p.is_dir()):
+            log = read_carmen(LOGS / name / f"{name}.log.gz")
+            _, reference = read_tum(LOGS / name / f"{name}.reference.tum")
+            rows.append(run_one(name, log, reference, args.plots))
+            print(name, {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items() if k != "stages"},
+                  flush=True)
+    text = ["# The mapping loop on real laser logs", "",
+            f"`python bench/slam.py {' '.join(sys.argv[1:])}` at revision {git_revision()}, {datetime.date.today()}, "
+            f"{os.cpu_count()}-core machine, {time.perf_counter() - started:.0f} s. Default options. Targets: ATE <= "
+            f"0.10 m and 1 deg, RPE over 10 scans <= 0.03 m and 0.3 deg, ATE <= odometry's / 10, no wrong loop "
+            f"closure, <= 25 ms per scan; * marks a miss.", "", table(rows)]
+    print("\n".join(text))
+    if args.out:
+        Path(args.out).write_text("\n".join(text) + "\n")
+
+
+if __name__ == "__main__":
+    main()

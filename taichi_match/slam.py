@@ -1,0 +1,391 @@
+"""The mapping loop: 2-D laser scans with odometry in, a corrected trajectory and a map out.
+
+Apart from the core (which never imports it); the pose graph needs ``gtsam`` (the ``slam`` extra).
+
+Front end. Scans are grouped into submaps of ``submap_scans`` consecutive scans, a new one
+starting every ``submap_scans // 2`` scans, so that every scan lies in two submaps and a submap
+is half full when the next one starts (as in Cartographer). Each scan is matched against the
+older of the two open submaps, which then holds at least half its scans: the scan as map B (its
+beams cast alone, with a decisive hit/miss model so that its rays are free and its returns
+walls), the submap as map A (its scans cast at their current estimates, in the frame of its
+first scan, the anchor), from the odometry's guess. Free space along the rays counts against
+the submap's walls: the matcher's negative information. An accepted match gives the scan's pose
+and an edge from the anchor to the scan with the match's calibrated covariance; a rejected one
+leaves the odometry's prediction.
+
+Back end. A pose graph over all scans (``gtsam``): odometry edges between consecutive scans
+(covariance from ``odometry_sd``), the front end's scan-to-submap edges, and loop closures. When
+a submap is complete it is matched against every earlier complete submap that shares no scan
+with it and whose anchor lies within ``loop_radius`` plus ``loop_growth`` times the distance
+travelled between the two, from the relative pose of the current estimates; accepted matches
+become edges between the anchors, under a Cauchy kernel against the false closures that still
+get through. The graph is then optimised (Levenberg-Marquardt) and the estimates replaced.
+
+Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
+poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
+"""
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ._errors import InvalidOptionError
+from ._matcher import Matcher, MatchOptions
+from ._se2 import compose, inverse, wrap_angle
+from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
+from .logs import LaserLog
+from .scans import SensorModel, scans_to_grid
+
+__all__ = ["SlamOptions", "SlamResult", "Slam", "slam"]
+
+# One scan alone: a return is a wall, a ray free (log-odds +-2: p 0.88 / 0.12, beyond the
+# trinary thresholds that the default model's single observation, +0.9 / -0.4, falls between).
+SCAN_MODEL = SensorModel(hit=2.0, miss=-2.0)
+
+# A scan-to-submap match becomes an edge when the matcher converged and, of the verdict's
+# evidence (``_verdict``), the walls agree and do not conflict as for map pairs, with fewer walls
+# (a scan of 180 beams compares 30-120) and a larger uncertainty allowed: a lone scan's
+# calibrated standard deviation is typically 4-7 cm, which its edge's covariance carries into the
+# graph, where odometry and the other scans outweigh it.
+SCAN_MIN_WALLS = 20
+ODOMETRY_GATE = 16.27            # chi-square, 3 degrees of freedom, 99.9 %
+SCAN_MAX_UNCERTAINTY_M = 0.15
+
+
+def scan_accepted(result) -> bool:
+    """Whether a scan-to-submap match is kept (see ``SCAN_MIN_WALLS``)."""
+    ev = result.evidence
+    return bool(result.converged and ev.walls_compared >= SCAN_MIN_WALLS and ev.wall_agreement >= MIN_AGREEMENT
+                and ev.wall_conflict <= MAX_CONFLICT and ev.uncertainty <= SCAN_MAX_UNCERTAINTY_M)
+
+
+@dataclass(frozen=True)
+class SlamOptions:
+    """Settings of the mapping loop (see the module docstring).
+
+    resolution : cell side of the submaps and the final map, metres.
+    submap_scans : scans per submap (even, >= 4); a new submap every ``submap_scans // 2``.
+    max_ray_length : beams are cut there (metres) in submaps and scans.
+    odometry_sd : (metres per metre travelled, radians per radian turned, radians per metre,
+        metres floor, radians floor): the standard deviations of an odometry step's translation
+        (each axis) and rotation.
+    loop_radius, loop_growth : a submap pair is a loop-closure candidate when their anchors lie
+        within ``loop_radius + loop_growth * distance travelled between them`` (metres).
+    loop_kernel : width of the Cauchy kernel on loop-closure edges, in standard deviations.
+    matcher : the ``MatchOptions`` of every match.
+    """
+
+    resolution: float = 0.05
+    submap_scans: int = 10
+    max_ray_length: float = 20.0
+    odometry_sd: tuple = (0.02, 0.02, math.radians(0.3), 0.005, math.radians(0.1))
+    loop_radius: float = 3.0
+    loop_growth: float = 0.1
+    loop_kernel: float = 3.0
+    matcher: MatchOptions = field(default_factory=MatchOptions)
+
+    def __post_init__(self):
+        if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
+            raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {self.submap_scans!r}")
+        for name in ("resolution", "max_ray_length", "loop_kernel"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InvalidOptionError(f"{name} must be a finite number > 0; got {value!r}")
+        for name in ("loop_radius", "loop_growth"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise InvalidOptionError(f"{name} must be a finite number >= 0; got {value!r}")
+        sd = np.asarray(self.odometry_sd, dtype=np.float64)
+        if sd.shape != (5,) or not np.all(np.isfinite(sd)) or np.any(sd < 0) or sd[3] <= 0 or sd[4] <= 0:
+            raise InvalidOptionError(f"odometry_sd must be 5 finite numbers >= 0, the floors > 0; got {self.odometry_sd!r}")
+
+
+@dataclass
+class SlamResult:
+    """What ``Slam.run`` found.
+
+    poses : (S, 3) every scan's optimised pose in the world frame.
+    timestamps : (S,) the scans' own timestamps.
+    map : the global map, every scan cast at its optimised pose.
+    graph, values : the gtsam factor graph and its optimised values (keys: scan indices).
+    scan_matches : (accepted, tried) front-end matches.
+    loops : one dict per loop-closure candidate tried (submaps, anchors, accepted, pose, ...).
+    seconds : wall time per stage.
+    match_seconds : each front-end match's time (``MatchResult.seconds``, preparing the new
+        submap and scan included).
+    """
+
+    poses: np.ndarray
+    timestamps: np.ndarray
+    map: object
+    graph: object
+    values: object
+    scan_matches: tuple
+    loops: list
+    seconds: dict
+    options: SlamOptions
+    match_seconds: np.ndarray
+
+
+class _Submap:
+    def __init__(self, index, anchor):
+        self.index = index
+        self.anchor = anchor          # the scan whose pose is the submap's frame
+        self.scans = []               # scan indices
+        self.final_grid = None        # once complete: its scans cast at the estimates of then
+
+
+def _gtsam():
+    try:
+        import gtsam
+    except ImportError as exc:                   # pragma: no cover - depends on the installation
+        raise ImportError("the mapping loop needs gtsam: pip install 'taichi-match[slam]' "
+                          "(gtsam has wheels for Python 3.11-3.13; on 3.10 build it from source)") from exc
+    return gtsam
+
+
+def _tangent_covariance(pose, covariance):
+    """A covariance of (x, y, theta) of a relative pose in the first frame as gtsam's Pose2 wants
+    it: in the tangent space at ``pose`` (translation in the pose's own axes)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    cov = j @ np.asarray(covariance, dtype=np.float64) @ j.T
+    return 0.5 * (cov + cov.T)
+
+
+class Slam:
+    """The mapping loop (see the module docstring)."""
+
+    def __init__(self, options: SlamOptions = None, **overrides):
+        options = options if options is not None else SlamOptions()
+        self.options = replace(options, **overrides) if overrides else options
+        self._matcher = Matcher(self.options.matcher)
+        self._scan_model = replace(SCAN_MODEL, max_ray_length=self.options.max_ray_length)
+        self._map_model = SensorModel(max_ray_length=self.options.max_ray_length)
+
+    def _odometry_noise(self, gtsam, delta):
+        return gtsam.noiseModel.Gaussian.Covariance(self._odometry_covariance(delta))
+
+    def _odometry_covariance(self, delta):
+        per_m, per_rad, rad_per_m, floor_m, floor_rad = self.options.odometry_sd
+        d = math.hypot(delta[0], delta[1])
+        sd_t = per_m * d + floor_m
+        sd_r = per_rad * abs(delta[2]) + rad_per_m * d + floor_rad
+        return np.diag([sd_t**2, sd_t**2, sd_r**2])
+
+    def _agrees_with_odometry(self, res, predicted, previous, anchor, delta):
+        """Whether the match's pose (in the anchor's frame) lies within the odometry step's
+        uncertainty plus the match's of the odometry's prediction (a 99.9 % chi-square gate): one
+        step of odometry is far better than a lone scan that slid along a corridor or turned on
+        a few walls."""
+        # the step's covariance is in the previous scan's frame: rotate it into the anchor's
+        c, s = math.cos(previous[2] - anchor[2]), math.sin(previous[2] - anchor[2])
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        cov = rot @ self._odometry_covariance(delta) @ rot.T + res.calibrated_covariance
+        d = np.asarray(res.pose, dtype=np.float64) - predicted
+        d[2] = wrap_angle(d[2])
+        return float(d @ np.linalg.solve(cov, d)) <= ODOMETRY_GATE
+
+    def _submap_grid(self, log, submap, est):
+        scans = submap.scans
+        origin = inverse(est[submap.anchor])
+        poses = np.array([compose(origin, est[j]) for j in scans])
+        return scans_to_grid([log.scans[j] for j in scans], poses, resolution=self.options.resolution,
+                             model=self._map_model)
+
+    def run(self, log: LaserLog, progress=None) -> SlamResult:
+        """Map ``log`` (its scans' poses are read as odometry); ``progress(k, n)`` after each scan."""
+        gtsam = _gtsam()
+        opts = self.options
+        n = len(log)
+        if n == 0:
+            raise InvalidOptionError("the log holds no scan")
+        odo = log.poses
+        if not np.all(np.isfinite(odo)):
+            raise InvalidOptionError("the log's odometry poses are not all finite")
+        if n > 1 and np.all(odo == odo[0]):
+            raise InvalidOptionError("the log has no odometry (every scan carries the same pose); the mapping "
+                                     "loop needs it for its guesses")
+        half = opts.submap_scans // 2
+        seconds = {"scan grids": 0.0, "submap grids": 0.0, "scan matching": 0.0, "loop closing": 0.0,
+                   "optimisation": 0.0, "final map": 0.0}
+        est = np.zeros((n, 3))
+        est[0] = odo[0]
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*est[0]), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))))
+        values.insert(0, gtsam.Pose2(*est[0]))
+        submaps, done = [_Submap(0, 0)], []
+        submaps[0].scans.append(0)
+        travelled = np.zeros(n)                 # odometry path length up to each scan
+        accepted = tried = 0
+        loops, match_seconds = [], []
+        for k in range(1, n):
+            delta = compose(inverse(odo[k - 1]), odo[k])
+            travelled[k] = travelled[k - 1] + math.hypot(delta[0], delta[1])
+            graph.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*delta), self._odometry_noise(gtsam, delta)))
+            pred = compose(est[k - 1], delta)
+            target = submaps[0]                           # the older open submap
+            t0 = time.perf_counter()
+            target_grid = self._submap_grid(log, target, est)
+            scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
+                                      model=self._scan_model)
+            t1 = time.perf_counter()
+            res = self._matcher.match(target_grid, scan_grid, compose(inverse(est[target.anchor]), pred))
+            t2 = time.perf_counter()
+            match_seconds.append(res.seconds)
+            seconds["submap grids"] += t1 - t0
+            seconds["scan matching"] += t2 - t1
+            tried += 1
+            if scan_accepted(res) and self._agrees_with_odometry(res, compose(inverse(est[target.anchor]), pred),
+                                                                   est[k - 1], est[target.anchor], delta):
+                accepted += 1
+                est[k] = compose(est[target.anchor], res.pose)
+                cov = _tangent_covariance(res.pose, res.calibrated_covariance)
+                graph.add(gtsam.BetweenFactorPose2(target.anchor, k, gtsam.Pose2(*res.pose),
+                                                   gtsam.noiseModel.Gaussian.Covariance(cov)))
+            else:
+                est[k] = pred
+            est[k, 2] = wrap_angle(est[k, 2])
+            values.insert(k, gtsam.Pose2(*est[k]))
+            if k % half == 0:
+                submaps.append(_Submap(len(done) + len(submaps), k))
+            for s in submaps:
+                s.scans.append(k)
+            if len(submaps[0].scans) >= opts.submap_scans or k == n - 1:
+                finished = submaps.pop(0)
+                t0 = time.perf_counter()
+                new_loops = self._close_loops(log, finished, done, est, travelled, graph, gtsam)
+                loops += new_loops
+                done.append(finished)
+                t1 = time.perf_counter()
+                seconds["loop closing"] += t1 - t0
+                est[:k + 1] = _optimise(gtsam, graph, values)
+                values = _values(gtsam, est[:k + 1])
+                seconds["optimisation"] += time.perf_counter() - t1
+            if progress is not None:
+                progress(k + 1, n)
+        t0 = time.perf_counter()
+        est = _optimise(gtsam, graph, values)
+        values = _values(gtsam, est)
+        t1 = time.perf_counter()
+        seconds["optimisation"] += t1 - t0
+        world = scans_to_grid(log.scans, est, resolution=opts.resolution, model=self._map_model)
+        seconds["final map"] += time.perf_counter() - t1
+        return SlamResult(poses=est, timestamps=log.timestamps, map=world, graph=graph, values=values,
+                          scan_matches=(accepted, tried), loops=loops, seconds=seconds, options=opts,
+                          match_seconds=np.array(match_seconds))
+
+    def _close_loops(self, log, submap, done, est, travelled, graph, gtsam):
+        opts = self.options
+        out = []
+        submap.final_grid = self._submap_grid(log, submap, est)
+        shared = set(submap.scans)
+        for other in done:
+            if shared.intersection(other.scans):
+                continue
+            a, b = other.anchor, submap.anchor
+            reach = opts.loop_radius + opts.loop_growth * abs(travelled[b] - travelled[a])
+            if math.hypot(*(est[b, :2] - est[a, :2])) > reach:
+                continue
+            guess = compose(inverse(est[a]), est[b])
+            res = self._matcher.match(other.final_grid, submap.final_grid, guess)
+            loop = {"submaps": (other.index, submap.index), "anchors": (a, b), "accepted": res.accepted,
+                    "pose": res.pose, "guess": guess, "covariance": res.calibrated_covariance,
+                    "evidence": res.evidence, "status": res.status.name}
+            out.append(loop)
+            if res.accepted:
+                cov = _tangent_covariance(res.pose, res.calibrated_covariance)
+                gaussian = gtsam.noiseModel.Gaussian.Covariance(cov)
+                robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(opts.loop_kernel),
+                                                        gaussian)
+                graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), robust))
+        return out
+
+
+
+def _optimise(gtsam, graph, values):
+    """The graph optimised from ``values`` (keys 0..m-1): (m, 3) poses."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(100)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    return np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()]
+                     for k in range(values.size())])
+
+def write_outputs(result: SlamResult, folder, *, source: str = "", force: bool = False) -> dict:
+    """Write ``trajectory.tum``, ``map.yaml`` + ``map.pgm``, ``graph.g2o`` and ``report.md`` into
+    ``folder`` (created if missing). Existing outputs are replaced only with ``force``; each file
+    is written whole or not at all. Returns {name: path}."""
+    from pathlib import Path
+
+    from . import io
+    from .logs import write_tum
+
+    gtsam = _gtsam()
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {"trajectory": folder / "trajectory.tum", "map": folder / "map.yaml", "graph": folder / "graph.g2o",
+             "report": folder / "report.md"}
+    image = Path(io.ros_map_paths(paths["map"])[1])
+    existing = [p for p in [*paths.values(), image] if p.exists()]
+    if existing and not force:
+        raise FileExistsError(f"{existing[0]} exists (use force=True / --force to replace the outputs)")
+    io.write_ros_map(result.map, paths["map"])
+    with io._signals_held():
+        for name, writer in (("trajectory", lambda tmp: write_tum(tmp, result.timestamps, result.poses)),
+                             ("graph", lambda tmp: gtsam.writeG2o(_plain_graph(gtsam, result.graph), result.values,
+                                                                  str(tmp))),
+                             ("report", lambda tmp: Path(tmp).write_text(report(result, source)))):
+            tmp = paths[name].with_name(paths[name].name + ".tmp")
+            try:
+                writer(tmp)
+                tmp.replace(paths[name])
+            finally:
+                tmp.unlink(missing_ok=True)
+    paths["image"] = image
+    return paths
+
+
+def _plain_graph(gtsam, graph):
+    """The graph's between-factors with their Gaussian noise (g2o has no robust kernels, no priors)."""
+    plain = gtsam.NonlinearFactorGraph()
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        if isinstance(factor, gtsam.BetweenFactorPose2):
+            noise = factor.noiseModel()
+            if isinstance(noise, gtsam.noiseModel.Robust):
+                noise = noise.noise()
+            a, b = factor.keys()
+            plain.add(gtsam.BetweenFactorPose2(a, b, factor.measured(), noise))
+    return plain
+
+
+def report(result: SlamResult, source: str = "") -> str:
+    """The run's settings, counts and time per stage as Markdown."""
+    n = len(result.poses)
+    total = sum(result.seconds.values())
+    accepted, tried = result.scan_matches
+    loops_ok = sum(loop["accepted"] for loop in result.loops)
+    lines = ["# taichi-match slam", "", f"Input: `{source}`" if source else "", "",
+             f"- scans: {n}; submaps of {result.options.submap_scans} scans at {result.options.resolution} m",
+             f"- scan-to-submap matches accepted: {accepted} of {tried}",
+             f"- loop closures accepted: {loops_ok} of {len(result.loops)} candidates",
+             f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", "",
+             "| stage | seconds | ms per scan |", "|---|---|---|"]
+    lines += [f"| {stage} | {sec:.2f} | {1e3 * sec / n:.1f} |" for stage, sec in result.seconds.items()]
+    lines += [f"| total | {total:.2f} | {1e3 * total / n:.1f} |", "", "Options:", "", "```", repr(result.options), "```", ""]
+    return "\n".join(lines)
+
+
+def _values(gtsam, est):
+    values = gtsam.Values()
+    for k, p in enumerate(est):
+        values.insert(k, gtsam.Pose2(*p))
+    return values
+
+
+def slam(log: LaserLog, options: SlamOptions = None, **overrides) -> SlamResult:
+    """``Slam(options, **overrides).run(log)``."""
+    return Slam(options, **overrides).run(log)

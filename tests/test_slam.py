@@ -1,0 +1,191 @@
+"""The mapping loop (issue 12): a simulated run against its exact truth, the outputs, bad input,
+and the trajectory metrics against evo."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from taichi_match import InvalidOptionError, LogFormatError
+from taichi_match.cli import main
+from taichi_match.evaluation import trajectory_errors
+from taichi_match.logs import LaserLog, read_carmen, read_tum, write_carmen
+from taichi_match.simulate import cast_scan, floor_plan, simulate_log
+
+gtsam = pytest.importorskip("gtsam")
+
+from taichi_match.slam import Slam, SlamOptions, write_outputs  # noqa: E402  (needs gtsam)
+
+
+@pytest.fixture(scope="module")
+def simulated():
+    return simulate_log(0)
+
+
+@pytest.fixture(scope="module")
+def mapped(simulated):
+    return Slam().run(simulated.log)
+
+
+@pytest.fixture(scope="module")
+def short_run():
+    return simulate_log(1, laps=0.4)
+
+
+def test_simulated_run_recovers_the_truth(simulated, mapped):
+    """Twice round a simulated building with drifting odometry: every scan gets a pose, the
+    trajectory is within the issue's ATE targets of the exact truth and 10 times better than the
+    odometry, and loop closures were found."""
+    assert mapped.poses.shape == (len(simulated.log), 3) and np.all(np.isfinite(mapped.poses))
+    errors = trajectory_errors(mapped.poses, simulated.truth)
+    odometry = trajectory_errors(simulated.log.poses, simulated.truth)
+    assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0, errors
+    assert errors["ate_m"] * 10 <= odometry["ate_m"], (errors, odometry)
+    assert sum(loop["accepted"] for loop in mapped.loops) >= 5
+
+
+@pytest.mark.xfail(reason="issue 12 open: RPE over 10 scans is 4-6 cm / 0.8-1 deg on the simulated run "
+                          "(target 3 cm / 0.3 deg); bench/SLAM.md", strict=True)
+def test_simulated_run_relative_error_within_target(simulated, mapped):
+    errors = trajectory_errors(mapped.poses, simulated.truth)
+    assert errors["rpe_m"] <= 0.03 and errors["rpe_deg"] <= 0.3, errors
+
+
+def test_same_input_same_bits(short_run):
+    first, second = Slam().run(short_run.log), Slam().run(short_run.log)
+    assert first.poses.tobytes() == second.poses.tobytes()
+
+
+def test_outputs_load(short_run, tmp_path):
+    from taichi_match.io import read_ros_map
+
+    result = Slam().run(short_run.log)
+    paths = write_outputs(result, tmp_path / "out", source="simulated")
+    stamps, poses = read_tum(paths["trajectory"])
+    np.testing.assert_array_equal(stamps, short_run.log.timestamps)
+    np.testing.assert_allclose(poses[:, :2], result.poses[:, :2], atol=1e-6)
+    grid = read_ros_map(paths["map"])
+    assert grid.shape == result.map.shape and grid.resolution == pytest.approx(0.05)
+    graph, values = gtsam.readG2o(str(paths["graph"]), False)
+    assert values.size() == len(short_run.log) and graph.size() >= len(short_run.log) - 1
+    assert "scan-to-submap matches accepted" in paths["report"].read_text()
+    evo_file = pytest.importorskip("evo.tools.file_interface")
+    trajectory = evo_file.read_tum_trajectory_file(str(paths["trajectory"]))
+    assert trajectory.num_poses == len(short_run.log)
+    with pytest.raises(FileExistsError):
+        write_outputs(result, tmp_path / "out")
+    write_outputs(result, tmp_path / "out", force=True)
+
+
+def test_cli_slam(short_run, tmp_path, capsys):
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    assert main(["slam", str(log_path), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "trajectory.tum").exists() and (tmp_path / "out" / "map.pgm").exists()
+    capsys.readouterr()
+    assert main(["slam", str(log_path), "--out", str(tmp_path / "out")]) == 2          # outputs exist
+    assert "--force" in capsys.readouterr().err
+    truncated = tmp_path / "truncated.log"
+    truncated.write_text(log_path.read_text()[:-200])                                  # cut mid-line
+    assert main(["slam", str(truncated), "--out", str(tmp_path / "t")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("taichi-match: error:") and "Traceback" not in err
+
+
+def test_carmen_round_trip(short_run, tmp_path):
+    path = tmp_path / "run.log"
+    write_carmen(path, short_run.log)
+    back = read_carmen(path)
+    assert len(back) == len(short_run.log)
+    for a, b in zip(back.scans, short_run.log.scans):
+        np.testing.assert_allclose(a.angles, b.angles, atol=1e-12)
+        np.testing.assert_allclose(a.ranges, b.ranges, atol=5e-4)
+        np.testing.assert_allclose(a.pose, b.pose, atol=1e-6)
+
+
+def test_bad_readings_are_skipped(short_run):
+    """NaN, negative and zero ranges are ignored (scans.beam_segments): the run completes with finite
+    poses close to those of the clean log."""
+    rng = np.random.default_rng(0)
+    scans = []
+    for scan in short_run.log.scans:
+        r = np.array(scan.ranges)
+        bad = rng.random(len(r)) < 0.1
+        r[bad] = rng.choice([np.nan, -1.0, 0.0, np.inf], int(bad.sum()))
+        scans.append(dataclasses.replace(scan, ranges=r))
+    result = Slam().run(LaserLog(tuple(scans), short_run.log.odometry))
+    assert np.all(np.isfinite(result.poses))
+    errors = trajectory_errors(result.poses, short_run.truth)
+    assert errors["ate_m"] <= 0.10, errors
+
+
+def test_bad_logs_raise(short_run):
+    with pytest.raises(InvalidOptionError, match="no scan"):
+        Slam().run(LaserLog((), np.zeros((0, 4))))
+    still = tuple(dataclasses.replace(s, pose=np.zeros(3)) for s in short_run.log.scans)
+    with pytest.raises(InvalidOptionError, match="no odometry"):
+        Slam().run(LaserLog(still, np.zeros((0, 4))))
+
+
+def test_truncated_log_raises(short_run, tmp_path):
+    path = tmp_path / "run.log"
+    write_carmen(path, short_run.log)
+    path.write_text(path.read_text()[:-200])
+    with pytest.raises(LogFormatError):
+        read_carmen(path)
+
+
+@pytest.mark.parametrize("field, value", [("submap_scans", 5), ("submap_scans", 2), ("resolution", 0.0),
+                                          ("loop_radius", -1.0), ("odometry_sd", (0.1, 0.1)),
+                                          ("odometry_sd", (0.1, 0.1, 0.1, 0.0, 0.1)), ("max_ray_length", math.nan)])
+def test_options_are_checked(field, value):
+    with pytest.raises(InvalidOptionError):
+        SlamOptions(**{field: value})
+
+
+def test_cast_scan_against_geometry():
+    """A laser in the plan's lower left corridor looking along +x reads the distance to the corridor's
+    far end wall (the outer rooms' wall, 0.15 m thick, its outer face at x = 21.5 m), and no return off the
+    map."""
+    world = floor_plan(0)
+    pose = (4.0, 3.75, 0.0)
+    r = cast_scan(world, pose, np.array([0.0]), max_range=40.0, noise=0.0)
+    assert r[0] == pytest.approx(21.5 - 0.15 - 4.0, abs=0.05)
+    r = cast_scan(world, (-5.0, -5.0, 0.0), np.array([math.pi]), max_range=3.0, noise=0.0)
+    assert r[0] == 3.0
+
+
+def test_trajectory_errors_match_evo():
+    metrics = pytest.importorskip("evo.core.metrics")
+    from evo.core.trajectory import PoseTrajectory3D
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    reference = np.cumsum(rng.normal(0, 0.3, (100, 3)), axis=0)
+    noisy = reference + rng.normal(0, 0.05, (100, 3))
+    c, s = math.cos(0.3), math.sin(0.3)
+    estimate = np.column_stack([c * noisy[:, 0] - s * noisy[:, 1] + 1, s * noisy[:, 0] + c * noisy[:, 1] - 2,
+                                noisy[:, 2] + 0.3])
+
+    def trajectory(p):
+        quat = Rotation.from_euler("z", p[:, 2:3]).as_quat()[:, [3, 0, 1, 2]]
+        return PoseTrajectory3D(positions_xyz=np.column_stack([p[:, :2], np.zeros(len(p))]),
+                                orientations_quat_wxyz=quat, timestamps=np.arange(len(p), dtype=float))
+
+    def rmse(metric, aligned):
+        ref, est = trajectory(reference), trajectory(estimate)
+        if aligned:
+            est.align(ref, correct_scale=False)
+        metric.process_data((ref, est))
+        return metric.get_statistic(metrics.StatisticsType.rmse)
+
+    ours = trajectory_errors(estimate, reference)
+    assert ours["ate_m"] == pytest.approx(rmse(metrics.APE(metrics.PoseRelation.translation_part), True), rel=1e-9)
+    assert ours["ate_deg"] == pytest.approx(rmse(metrics.APE(metrics.PoseRelation.rotation_angle_deg), True),
+                                            rel=1e-9)
+    kw = dict(delta=10, delta_unit=metrics.Unit.frames, all_pairs=True)
+    assert ours["rpe_m"] == pytest.approx(rmse(metrics.RPE(metrics.PoseRelation.translation_part, **kw), False),
+                                          rel=1e-9)
+    assert ours["rpe_deg"] == pytest.approx(rmse(metrics.RPE(metrics.PoseRelation.rotation_angle_deg, **kw), False),
+                                            rel=1e-9)
