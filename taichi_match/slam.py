@@ -9,17 +9,20 @@ older of the two open submaps, which then holds at least half its scans: the sca
 beams cast alone, with a decisive hit/miss model so that its rays are free and its returns
 walls), the submap as map A (its scans cast at their current estimates, in the frame of its
 first scan, the anchor), from the odometry's guess. Free space along the rays counts against
-the submap's walls: the matcher's negative information. An accepted match gives the scan's pose
-and an edge from the anchor to the scan with the match's calibrated covariance; a rejected one
-leaves the odometry's prediction.
+the submap's walls: the matcher's negative information. A match that passes ``scan_accepted``
+and agrees with the odometry's prediction (a 99.9 % chi-square gate on the step's covariance
+plus the match's) gives the scan's pose and an edge from the anchor to the scan with the match's
+calibrated covariance; otherwise the scan keeps the odometry's prediction.
 
 Back end. A pose graph over all scans (``gtsam``): odometry edges between consecutive scans
 (covariance from ``odometry_sd``), the front end's scan-to-submap edges, and loop closures. When
 a submap is complete it is matched against every earlier complete submap that shares no scan
 with it and whose anchor lies within ``loop_radius`` plus ``loop_growth`` times the distance
 travelled between the two, from the relative pose of the current estimates; accepted matches
-become edges between the anchors, under a Cauchy kernel against the false closures that still
-get through. The graph is then optimised (Levenberg-Marquardt) and the estimates replaced.
+become edges between the anchors. Every match's edge (scan-to-submap and loop closure) is under
+a Cauchy kernel, against the wrong matches that still get through (a scan turning a corner can
+slide several degrees on the junction's few walls). The graph is optimised (Levenberg-Marquardt)
+each time a submap is complete, and once more at the end; the estimates are replaced.
 
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
 poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
@@ -73,7 +76,8 @@ class SlamOptions:
         (each axis) and rotation.
     loop_radius, loop_growth : a submap pair is a loop-closure candidate when their anchors lie
         within ``loop_radius + loop_growth * distance travelled between them`` (metres).
-    loop_kernel : width of the Cauchy kernel on loop-closure edges, in standard deviations.
+    robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
+        closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
     matcher : the ``MatchOptions`` of every match.
     """
 
@@ -83,13 +87,13 @@ class SlamOptions:
     odometry_sd: tuple = (0.02, 0.02, math.radians(0.3), 0.005, math.radians(0.1))
     loop_radius: float = 3.0
     loop_growth: float = 0.1
-    loop_kernel: float = 3.0
+    robust_kernel: float = 1.5
     matcher: MatchOptions = field(default_factory=MatchOptions)
 
     def __post_init__(self):
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {self.submap_scans!r}")
-        for name in ("resolution", "max_ray_length", "loop_kernel"):
+        for name in ("resolution", "max_ray_length", "robust_kernel"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {value!r}")
@@ -112,6 +116,8 @@ class SlamResult:
     graph, values : the gtsam factor graph and its optimised values (keys: scan indices).
     scan_matches : (accepted, tried) front-end matches.
     loops : one dict per loop-closure candidate tried (submaps, anchors, accepted, pose, ...).
+    scans : one dict per front-end match (scan, anchor, pose in the anchor's frame, accepted by
+        the verdict, edge: also within the odometry gate, covariance).
     seconds : wall time per stage.
     match_seconds : each front-end match's time (``MatchResult.seconds``, preparing the new
         submap and scan included).
@@ -124,6 +130,7 @@ class SlamResult:
     values: object
     scan_matches: tuple
     loops: list
+    scans: list
     seconds: dict
     options: SlamOptions
     match_seconds: np.ndarray
@@ -167,6 +174,12 @@ class Slam:
 
     def _odometry_noise(self, gtsam, delta):
         return gtsam.noiseModel.Gaussian.Covariance(self._odometry_covariance(delta))
+
+    def _robust_noise(self, gtsam, covariance):
+        """A match's covariance under the Cauchy kernel (``robust_kernel`` standard deviations wide)."""
+        gaussian = gtsam.noiseModel.Gaussian.Covariance(covariance)
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.options.robust_kernel),
+                                              gaussian)
 
     def _odometry_covariance(self, delta):
         per_m, per_rad, rad_per_m, floor_m, floor_rad = self.options.odometry_sd
@@ -221,7 +234,7 @@ class Slam:
         submaps[0].scans.append(0)
         travelled = np.zeros(n)                 # odometry path length up to each scan
         accepted = tried = 0
-        loops, match_seconds = [], []
+        loops, scans, match_seconds = [], [], []
         for k in range(1, n):
             delta = compose(inverse(odo[k - 1]), odo[k])
             travelled[k] = travelled[k - 1] + math.hypot(delta[0], delta[1])
@@ -239,13 +252,17 @@ class Slam:
             seconds["submap grids"] += t1 - t0
             seconds["scan matching"] += t2 - t1
             tried += 1
-            if scan_accepted(res) and self._agrees_with_odometry(res, compose(inverse(est[target.anchor]), pred),
-                                                                   est[k - 1], est[target.anchor], delta):
+            verdict = scan_accepted(res)
+            gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.anchor]), pred),
+                                                           est[k - 1], est[target.anchor], delta)
+            scans.append({"scan": k, "anchor": target.anchor, "pose": res.pose, "accepted": verdict, "edge": gated,
+                          "covariance": res.calibrated_covariance})
+            if gated:
                 accepted += 1
                 est[k] = compose(est[target.anchor], res.pose)
                 cov = _tangent_covariance(res.pose, res.calibrated_covariance)
                 graph.add(gtsam.BetweenFactorPose2(target.anchor, k, gtsam.Pose2(*res.pose),
-                                                   gtsam.noiseModel.Gaussian.Covariance(cov)))
+                                                   self._robust_noise(gtsam, cov)))
             else:
                 est[k] = pred
             est[k, 2] = wrap_angle(est[k, 2])
@@ -275,7 +292,7 @@ class Slam:
         world = scans_to_grid(log.scans, est, resolution=opts.resolution, model=self._map_model)
         seconds["final map"] += time.perf_counter() - t1
         return SlamResult(poses=est, timestamps=log.timestamps, map=world, graph=graph, values=values,
-                          scan_matches=(accepted, tried), loops=loops, seconds=seconds, options=opts,
+                          scan_matches=(accepted, tried), loops=loops, scans=scans, seconds=seconds, options=opts,
                           match_seconds=np.array(match_seconds))
 
     def _close_loops(self, log, submap, done, est, travelled, graph, gtsam):
@@ -298,10 +315,7 @@ class Slam:
             out.append(loop)
             if res.accepted:
                 cov = _tangent_covariance(res.pose, res.calibrated_covariance)
-                gaussian = gtsam.noiseModel.Gaussian.Covariance(cov)
-                robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(opts.loop_kernel),
-                                                        gaussian)
-                graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), robust))
+                graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return out
 
 

@@ -45,7 +45,7 @@ def test_simulated_run_recovers_the_truth(simulated, mapped):
     assert sum(loop["accepted"] for loop in mapped.loops) >= 5
 
 
-@pytest.mark.xfail(reason="issue 12 open: RPE over 10 scans is 4-6 cm / 0.8-1 deg on the simulated run "
+@pytest.mark.xfail(reason="issue 12 open: RPE over 10 scans is 3.0 cm / 0.39 deg on the simulated run "
                           "(target 3 cm / 0.3 deg); bench/SLAM.md", strict=True)
 def test_simulated_run_relative_error_within_target(simulated, mapped):
     errors = trajectory_errors(mapped.poses, simulated.truth)

@@ -1,0 +1,103 @@
+"""How far the logs' reference trajectories are from what their scans say, measured without our
+matcher: a plain point-to-line ICP between scans (a measuring tool here, not part of the
+package; scipy's cKDTree for the neighbours).
+
+For scans k, k+1, k+2 (every third k) ICP finds the relative poses k->k+1, k+1->k+2 and k->k+2,
+each started from the reference's. Reported per log, medians:
+
+- ICP against the reference's relative pose of consecutive scans (translation and rotation);
+- ICP's own cycle error, k->k+1->k+2 against k->k+2: how consistent ICP is with itself.
+
+When ICP closes its cycles to a few millimetres but disagrees with the reference's consecutive
+poses by centimetres, the reference (a SLAM result, shared/logs/SOURCES.md) carries that error,
+and no trajectory can score an RPE against it much below that.
+
+    python bench/reference_check.py [--logs aces csail]
+"""
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from taichi_match import compose, inverse, wrap_angle
+from taichi_match.logs import read_carmen, read_tum
+
+LOGS = Path(__file__).resolve().parents[2] / "shared" / "logs"
+
+
+def points(scan, max_range=20.0):
+    r, a = np.asarray(scan.ranges), np.asarray(scan.angles)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & (r > 0.1) & (r < min(scan.max_range - 0.01, max_range))
+    return np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])])
+
+
+def normals(p, tree):
+    """Unit normals from the 6 nearest points' scatter."""
+    _, idx = tree.query(p, k=6)
+    out = np.empty_like(p)
+    for i, neighbours in enumerate(idx):
+        q = p[neighbours] - p[neighbours].mean(axis=0)
+        out[i] = np.linalg.eigh(q.T @ q)[1][:, 0]
+    return out
+
+
+def icp(a, b, start, iterations=40):
+    """Pose (x, y, theta) of b's frame in a's minimising the point-to-line distances; None if
+    fewer than 20 pairs remain."""
+    tree = cKDTree(a)
+    n_a = normals(a, tree)
+    x = np.array(start, dtype=float)
+    for it in range(iterations):
+        c, s = np.cos(x[2]), np.sin(x[2])
+        moved = b @ np.array([[c, s], [-s, c]]) + x[:2]
+        d, i = tree.query(moved)
+        keep = d < max(0.3 * 0.8**it, 0.05)                   # the gate shrinks to 5 cm
+        if keep.sum() < 20:
+            return None
+        n, rel = n_a[i[keep]], moved[keep] - x[:2]
+        r = np.sum((moved[keep] - a[i[keep]]) * n, axis=1)
+        jac = np.column_stack([n[:, 0], n[:, 1], -n[:, 0] * rel[:, 1] + n[:, 1] * rel[:, 0]])
+        step = np.linalg.lstsq(jac, -r, rcond=None)[0]
+        x += step
+        if np.linalg.norm(step) < 1e-6:
+            break
+    return x
+
+
+def check(name):
+    log = read_carmen(LOGS / name / f"{name}.log.gz")
+    _, ref = read_tum(LOGS / name / f"{name}.reference.tum")
+    to_ref, cycles = [], []
+    for k in range(0, len(log) - 2, 3):
+        p = [points(log.scans[k + j]) for j in range(3)]
+        truth = [compose(inverse(ref[k]), ref[k + 1]), compose(inverse(ref[k + 1]), ref[k + 2]),
+                 compose(inverse(ref[k]), ref[k + 2])]
+        x01, x12, x02 = icp(p[0], p[1], truth[0]), icp(p[1], p[2], truth[1]), icp(p[0], p[2], truth[2])
+        if x01 is None or x12 is None or x02 is None:
+            continue
+        e = compose(inverse(truth[0]), x01)
+        to_ref.append((np.hypot(e[0], e[1]), abs(np.degrees(wrap_angle(e[2])))))
+        c = compose(inverse(x02), compose(x01, x12))
+        cycles.append((np.hypot(c[0], c[1]), abs(np.degrees(wrap_angle(c[2])))))
+    to_ref, cycles = np.array(to_ref), np.array(cycles)
+    return len(to_ref), np.median(to_ref, axis=0), np.median(cycles, axis=0)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--logs", nargs="*")
+    args = parser.parse_args()
+    names = args.logs or sorted(p.name for p in LOGS.iterdir() if p.is_dir())
+    print("| log | triplets | ICP vs reference, consecutive scans (median mm / deg) | ICP cycle error (median mm / deg) |")
+    print("|---|---|---|---|")
+    for name in names:
+        n, to_ref, cycle = check(name)
+        print(f"| {name} | {n} | {1e3 * to_ref[0]:.1f} / {to_ref[1]:.3f} | {1e3 * cycle[0]:.1f} / {cycle[1]:.3f} |",
+              flush=True)
+
+
+if __name__ == "__main__":
+    main()
