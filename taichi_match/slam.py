@@ -243,14 +243,15 @@ class Slam:
             target = submaps[0]                           # the older open submap
             t0 = time.perf_counter()
             target_grid = self._submap_grid(log, target, est)
+            t1 = time.perf_counter()
             scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
                                       model=self._scan_model)
-            t1 = time.perf_counter()
-            res = self._matcher.match(target_grid, scan_grid, compose(inverse(est[target.anchor]), pred))
             t2 = time.perf_counter()
+            res = self._matcher.match(target_grid, scan_grid, compose(inverse(est[target.anchor]), pred))
             match_seconds.append(res.seconds)
             seconds["submap grids"] += t1 - t0
-            seconds["scan matching"] += t2 - t1
+            seconds["scan grids"] += t2 - t1
+            seconds["scan matching"] += time.perf_counter() - t2
             tried += 1
             verdict = scan_accepted(res)
             gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.anchor]), pred),
