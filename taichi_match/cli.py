@@ -185,7 +185,14 @@ def _slam(args):
     from taichi_match.logs import read_carmen, read_tum
     from taichi_match.slam import Slam, SlamOptions, write_outputs
 
-    log = read_carmen(args.log)
+    if os.path.isdir(args.log) or os.path.splitext(args.log)[1] in (".bag", ".db3", ".mcap"):
+        from taichi_match.bags import read_rosbag
+
+        log, left_out = read_rosbag(args.log, scan_topic=args.scan_topic, odometry_topic=args.odom_topic)
+        if left_out:
+            print(f"{left_out} scans outside the odometry's time span left out")
+    else:
+        log = read_carmen(args.log)
     options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
                                                ("max_ray_length", args.max_ray)) if v is not None})
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
@@ -286,7 +293,10 @@ def main(argv=None):
     merge.set_defaults(func=_merge)
     slam = sub.add_parser("slam", help="map a laser log: corrected trajectory, map, pose graph and report "
                                        "(needs gtsam: pip install 'taichi-match[slam]')")
-    slam.add_argument("log", help="CARMEN log (.log, .clf, gzipped or not)")
+    slam.add_argument("log", help="CARMEN log (.log, .clf, gzipped or not), or a ROS 1 (.bag) or ROS 2 bag "
+                                   "(folder, .db3, .mcap) with sensor_msgs/LaserScan and nav_msgs/Odometry")
+    slam.add_argument("--scan-topic", help="the LaserScan topic of a bag that has several")
+    slam.add_argument("--odom-topic", help="the Odometry topic of a bag that has several")
     slam.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     slam.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     slam.add_argument("--reference", metavar="TUM", help="a reference trajectory: print ATE and RPE against it")
