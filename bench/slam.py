@@ -64,27 +64,13 @@ def run_one(name, log, reference, plots=None):
 
 
 def picture(path, name, result, log, reference):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from taichi_match.plots import save_trajectories
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    grid = result.map
-    x0, y0 = grid.origin
-    h, w = grid.shape
-    ref = align_se2(reference, result.poses)            # the reference in the map's frame
-    odo = align_se2(log.poses, result.poses)
-    fig, ax = plt.subplots(figsize=(8, 8))
-    ax.imshow(np.nan_to_num(1.0 - grid.prob, nan=0.8), cmap="gray", vmin=0, vmax=1, origin="lower",
-              extent=(x0, x0 + w * grid.resolution, y0, y0 + h * grid.resolution))
-    ax.plot(odo[:, 0], odo[:, 1], color="tab:orange", lw=0.8, label="odometry")
-    ax.plot(ref[:, 0], ref[:, 1], color="tab:green", lw=1.2, label="reference")
-    ax.plot(result.poses[:, 0], result.poses[:, 1], color="tab:red", lw=0.8, ls="--", label="taichi-match slam")
-    ax.set_title(name)
-    ax.legend(loc="best", fontsize=8)
-    fig.savefig(path, dpi=90, bbox_inches="tight")
-    plt.close(fig)
+    save_trajectories(path, result.map, {
+        "odometry": (align_se2(log.poses, result.poses), "tab:orange", "-"),
+        "reference": (align_se2(reference, result.poses), "tab:green", "-"),      # in the map's frame
+        "taichi-match slam": (result.poses, "tab:red", "--")}, title=name)
 
 
 def table(rows):

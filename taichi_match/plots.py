@@ -7,7 +7,7 @@ import numpy as np
 from ._errors import InvalidOptionError
 from ._grid import GridMap
 
-__all__ = ["map_rgba", "draw_map", "draw_overlay", "save_overlay", "save_surface", "save_maps"]
+__all__ = ["map_rgba", "draw_map", "draw_overlay", "save_overlay", "save_surface", "save_maps", "save_trajectories"]
 
 UNKNOWN_RGB = (0.72, 0.82, 0.97)       # the paper draws unknown cells in blue
 
@@ -135,4 +135,27 @@ def save_maps(path, raw: GridMap, blurred: GridMap, *, title=""):
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def save_trajectories(path, grid: GridMap, trajectories, *, title=""):
+    """``grid`` with trajectories over it: ``trajectories`` maps a label to (poses (N, 3), colour,
+    line style), all in the map's frame. The extension of ``path`` says the format."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if ext not in (".png", ".pdf", ".svg") or os.path.isdir(path):
+        raise InvalidOptionError(f"the picture must be a .png, .pdf or .svg file; got {os.fspath(path)!r}")
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(8, 8))
+    x0, y0 = grid.origin
+    h, w = grid.shape
+    ax.imshow(np.nan_to_num(1.0 - grid.prob, nan=0.8), cmap="gray", vmin=0, vmax=1, origin="lower",
+              extent=(x0, x0 + w * grid.resolution, y0, y0 + h * grid.resolution))
+    for label, (poses, colour, style) in trajectories.items():
+        poses = np.asarray(poses)
+        ax.plot(poses[:, 0], poses[:, 1], color=colour, ls=style, lw=1.0, label=label)
+    ax.set_title(title)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(loc="best", fontsize=8)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)

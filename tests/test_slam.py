@@ -189,3 +189,10 @@ def test_trajectory_errors_match_evo():
                                           rel=1e-9)
     assert ours["rpe_deg"] == pytest.approx(rmse(metrics.RPE(metrics.PoseRelation.rotation_angle_deg, **kw), False),
                                             rel=1e-9)
+
+
+def test_cli_demo_slam(capsys):
+    """The README's demo: exit 0, the error against the simulated truth printed."""
+    assert main(["demo-slam", "--plot", ""]) == 0
+    out = capsys.readouterr().out
+    assert "against the simulated truth: ATE" in out and "the odometry alone" in out
