@@ -39,7 +39,7 @@ from scipy import fft, ndimage
 from ._errors import InvalidOptionError
 from ._grid import GridMap
 
-__all__ = ["blur", "BLUR_KINDS"]
+__all__ = ["blur", "wall_transform", "BLUR_KINDS"]
 
 BLUR_KINDS = ("gaussian", "ramp", "envelope")
 
@@ -75,9 +75,20 @@ def _convolve_same(x, taps, axis):
     return np.take(full, np.arange(start, start + size), axis=axis)
 
 
+def wall_transform(grid: GridMap, occupied: float = 0.5):
+    """(distance, (rows, cols)): per cell the distance in cells to the nearest cell with
+    p >= ``occupied`` and that cell's index (``ndimage.distance_transform_edt``); None when the map
+    has no such cell. The "ramp" and "envelope" blurs and the verdict's wall distances use it."""
+    occ = np.nan_to_num(grid.prob, nan=0.0) >= occupied
+    if not occ.any():
+        return None
+    return ndimage.distance_transform_edt(~occ, return_indices=True)
+
+
 def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "envelope"] = "gaussian",
-         occupied: float = 0.5) -> GridMap:
-    """Return ``grid`` blurred with ``width`` metres (see the module docstring); unknown stays NaN."""
+         occupied: float = 0.5, transform=None) -> GridMap:
+    """Return ``grid`` blurred with ``width`` metres (see the module docstring); unknown stays NaN.
+    ``transform``: ``wall_transform(grid, occupied)`` when the caller has it already."""
     width = float(width)
     if not np.isfinite(width) or width < 0.0:
         raise InvalidOptionError(f"blur width must be a finite number of metres >= 0; got {width}")
@@ -92,10 +103,10 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "enve
         both = gaussian_filter(np.stack([np.where(unknown, 0.0, prob), (~unknown).astype(np.float64)]), sigma)
         out = np.clip(both[0] / np.maximum(both[1], 1e-300), 0.0, 1.0)
     else:
-        occ = np.nan_to_num(prob, nan=0.0) >= occupied
-        if not occ.any():
+        transform = transform if transform is not None else wall_transform(grid, occupied)
+        if transform is None:
             return grid
-        dist, (ri, ci) = ndimage.distance_transform_edt(~occ, return_indices=True)
+        dist, (ri, ci) = transform
         d = dist * (grid.resolution / width)
         profile = np.clip(1.0 - d, 0.0, None) if kind == "ramp" else np.exp(-0.5 * d * d)
         out = np.fmax(prob, prob[ri, ci] * profile)

@@ -11,7 +11,7 @@ import weakref
 
 import numpy as np
 
-from ._blur import blur
+from ._blur import blur, wall_transform
 from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
 from ._grid import GridMap, trinary
@@ -49,7 +49,10 @@ class PreparedMap:
         self.blur_width = float(blur_width)
         self.blur_kind = blur_kind
         self.blur_growth = float(blur_growth)
-        blurred = blur(grid, blur_width, kind=blur_kind)
+        # the walls' distance transform, once for the blur and the verdict
+        transform = wall_transform(grid) if blur_kind in ("ramp", "envelope") and blur_width > 0 else None
+        self._wall_distances = transform[0] if transform is not None else None
+        blurred = blur(grid, blur_width, kind=blur_kind, transform=transform)
         self.blurred = blurred if blurred is not grid else grid.with_prob(grid.prob)   # "envelope": hi
         # the map as compared: blurred for the paper's |p_A - p_B| (``_kernels``); for "envelope" the
         # map itself (a copy: a strong reference to the caller's map would keep it in the matcher's
@@ -95,7 +98,7 @@ class PreparedMap:
     def wall_distance(self):
         """The map's walls and their distance transform, for the verdict (computed once)."""
         if self._wall_distance is None:
-            self._wall_distance = WallDistance(self.grid)
+            self._wall_distance = WallDistance(self.grid, self._wall_distances)
         return self._wall_distance
 
     def wall_array(self, unknown_cost):

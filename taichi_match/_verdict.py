@@ -64,13 +64,17 @@ class WallDistance:
     """A map's walls (p >= 0.5) and, per cell, the distance in cells to the nearest one (NaN on
     unknown cells)."""
 
-    def __init__(self, grid):
+    def __init__(self, grid, distance=None):
+        """``distance``: the distance transform of the walls (``_blur.wall_transform``'s first
+        array) when the caller has it; it is copied, not changed."""
         p = grid.prob
         occupied = np.nan_to_num(p, nan=0.0) >= 0.5
         self.grid = grid
         rows, cols = np.nonzero(occupied)
         self.centres = grid.cell_centres(rows, cols)
-        if occupied.any():
+        if distance is not None:
+            self.distance = np.array(distance, dtype=np.float64, copy=True)
+        elif occupied.any():
             self.distance = ndimage.distance_transform_edt(~occupied)
         else:
             self.distance = np.full(p.shape, np.inf)
