@@ -14,7 +14,8 @@ FLASER lines), then against ``NAME.reference.tum``:
     python bench/slam.py                                   # table to stdout
     python bench/slam.py --out bench/SLAM.md --plots bench/slam
     python bench/slam.py --logs aces csail
-    python bench/slam.py --simulated                       # the simulated run of the README instead
+    python bench/slam.py --simulated                       # the simulated run of the README too (first row)
+    python bench/slam.py --simulated --logs                # only the simulated run
 """
 
 import argparse
@@ -98,7 +99,7 @@ def table(rows):
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--logs", nargs="*", help="log names (default: all in ../shared/logs)")
-    parser.add_argument("--simulated", action="store_true", help="the simulated run (taichi_match.simulate)")
+    parser.add_argument("--simulated", action="store_true", help="also the simulated run (taichi_match.simulate)")
     parser.add_argument("--out", help="also write the table (markdown) here")
     parser.add_argument("--plots", help="folder for one picture per log")
     args = parser.parse_args()
@@ -111,7 +112,7 @@ def main():
 
         run = simulate_log(0)
         rows.append(run_one("simulated", run.log, run.truth, args.plots))
-    else:
+    if args.logs != []:
         if not LOGS.is_dir():
             raise SystemExit(f"{LOGS} not found: the laser logs live in ../shared/logs")
         for name in args.logs or sorted(p.name for p in LOGS.iterdir() if p.is_dir()):
