@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import LogFileError, LogFormatError
-from .logs import LaserLog, Scan
+from .logs import _MAX_BEAMS as MAX_BEAMS
+from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan
 
 __all__ = ["read_rosbag"]
 
@@ -80,6 +81,8 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
     if not scans:
         raise LogFormatError(f"{path}: no LaserScan message")
     odo = np.array(sorted(odometry), dtype=np.float64).reshape(-1, 4)
+    if len(odo) >= 2 and (np.abs(odo[:, 1:3]).max() > MAX_COORDINATE or np.abs(odo[:, 3]).max() > MAX_ANGLE):
+        raise LogFormatError(f"{path}: odometry poses beyond {MAX_COORDINATE:g} m or {MAX_ANGLE:g} rad")
     if len(odo) < 2 or not np.all(np.isfinite(odo)):
         raise LogFormatError(f"{path}: fewer than two finite Odometry messages (a log without odometry cannot be mapped)")
     heading = np.unwrap(odo[:, 3])
@@ -92,11 +95,16 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
         pose = np.array([np.interp(t, odo[:, 0], odo[:, 1]), np.interp(t, odo[:, 0], odo[:, 2]),
                          np.interp(t, odo[:, 0], heading)])
         pose[2] = np.arctan2(np.sin(pose[2]), np.cos(pose[2]))
+        n = len(msg.ranges)
+        if n > MAX_BEAMS:
+            raise LogFormatError(f"{path}: a LaserScan at t={t} has {n} ranges; at most {MAX_BEAMS}")
         r = np.asarray(msg.ranges, dtype=np.float64).copy()
         max_range = float(msg.range_max)
-        if not (np.isfinite(max_range) and max_range > 0 and np.isfinite(msg.angle_min)
-                and np.isfinite(msg.angle_increment)):
-            raise LogFormatError(f"{path}: a LaserScan at t={t} has no finite range_max, angle_min or angle_increment")
+        step = float(msg.angle_increment)
+        if not (np.isfinite(max_range) and max_range > 0 and np.isfinite(msg.angle_min) and np.isfinite(step)
+                and step != 0.0 and abs(step) * max(n - 1, 0) <= 2 * np.pi + 1e-6):
+            raise LogFormatError(f"{path}: a LaserScan at t={t} needs a finite range_max > 0, a finite angle_min and "
+                                 f"a non-zero angle_increment with all beams within one turn")
         with np.errstate(invalid="ignore"):
             r[(r < msg.range_min) | (np.isinf(r) & (r < 0))] = np.nan
             r[(r >= max_range) | np.isposinf(r)] = max_range

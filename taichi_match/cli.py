@@ -182,9 +182,12 @@ def _merge(args):
 
 
 def _slam(args):
-    from taichi_match.logs import read_carmen, read_tum
-    from taichi_match.slam import Slam, SlamOptions, write_outputs
+    import numpy as np
 
+    from taichi_match.logs import read_carmen, read_tum
+    from taichi_match.slam import Slam, SlamOptions, output_paths, write_outputs
+
+    output_paths(args.out, force=args.force, keep=(args.log, args.reference))      # before any work
     if os.path.isdir(args.log) or os.path.splitext(args.log)[1] in (".bag", ".db3", ".mcap"):
         from taichi_match.bags import read_rosbag
 
@@ -193,19 +196,24 @@ def _slam(args):
             print(f"{left_out} scans outside the odometry's time span left out")
     else:
         log = read_carmen(args.log)
+    reference = None
+    if args.reference:
+        stamps, reference = read_tum(args.reference)
+        if len(stamps) != len(log) or not np.allclose(stamps, log.timestamps, rtol=0.0, atol=1e-3):
+            raise ValueError(f"{args.reference}: the reference must hold one pose per scan, at the scans' "
+                             f"timestamps ({len(stamps)} poses for {len(log)} scans)")
     options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
                                                ("max_ray_length", args.max_ray)) if v is not None})
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
-    paths = write_outputs(result, args.out, source=args.log, force=args.force)
+    paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference))
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
     print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
           f"{accepted}/{tried}; loop closures {sum(l['accepted'] for l in result.loops)}/{len(result.loops)}")
-    if args.reference:
+    if reference is not None:
         from taichi_match.evaluation import trajectory_errors
 
-        _, reference = read_tum(args.reference)
         errors = trajectory_errors(result.poses, reference)
         odometry = trajectory_errors(log.poses, reference)
         print(f"ATE {errors['ate_m']:.3f} m {errors['ate_deg']:.2f} deg (odometry {odometry['ate_m']:.3f} m "
@@ -278,8 +286,15 @@ def _add_map_arguments(parser):
                             help=f"override map {which.upper()}'s resolution (metres per cell)")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with its errors on one line like every other error of the command."""
+
+    def error(self, message):
+        self.exit(EXIT_BAD_INPUT, f"taichi-match: error: {message} (see {self.prog} --help)\n")
+
+
 def main(argv=None):
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="taichi-match", description="Relative pose between overlapping occupancy grid maps.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="match the paper's corridor against a copy of itself")

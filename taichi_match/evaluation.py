@@ -38,6 +38,9 @@ def trajectory_errors(poses, reference, delta: int = 10) -> dict:
     poses, reference = np.asarray(poses, dtype=np.float64), np.asarray(reference, dtype=np.float64)
     if poses.shape != reference.shape or poses.ndim != 2 or poses.shape[1] != 3:
         raise ValueError(f"poses {poses.shape} and reference {reference.shape} must both be (N, 3)")
+    for name, array in (("poses", poses), ("reference", reference)):
+        if not np.all(np.isfinite(array)) or np.abs(array[:, :2]).max(initial=0.0) > 1e6:
+            raise ValueError(f"{name} must be finite, positions within 1e6 m")
     aligned = align_se2(poses, reference)
     out = {"ate_m": float(np.sqrt(np.mean(np.sum((aligned[:, :2] - reference[:, :2]) ** 2, axis=1)))),
            "ate_deg": float(np.degrees(np.sqrt(np.mean(wrap_angle(aligned[:, 2] - reference[:, 2]) ** 2))))}

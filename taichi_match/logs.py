@@ -36,6 +36,8 @@ __all__ = ["Scan", "LaserLog", "read_carmen", "write_carmen", "read_tum", "write
 # Lines longer than this are refused (the longest real laser lines hold a few thousand numbers).
 _MAX_LINE = 1 << 20
 _MAX_BEAMS = 100_000
+MAX_COORDINATE = 1e6         # metres: poses farther from the origin are refused as corrupt
+MAX_ANGLE = 1e3              # radians (headings may be unwrapped, but not by 1e20)
 
 
 @dataclass(frozen=True)
@@ -89,7 +91,12 @@ def _lines(path):
     """(line number, stripped line) of a text or gzipped file, with read errors as LogFileError."""
     try:
         with _open_text(path) as f:
-            for number, line in enumerate(f, 1):
+            number = 0
+            while True:
+                line = f.readline(_MAX_LINE + 1)            # never more than that in memory
+                if not line:
+                    break
+                number += 1
                 if len(line) > _MAX_LINE:
                     raise LogFormatError(f"{path}:{number}: line longer than {_MAX_LINE} characters")
                 yield number, line.strip()
@@ -121,8 +128,9 @@ def _flaser(words, where):
     if len(words) < 2:
         raise LogFormatError(f"{where}: FLASER without the number of beams")
     n = _beam_count(words[1], where)
-    if len(words) < 2 + n + 7:
-        raise LogFormatError(f"{where}: FLASER with {n} beams needs {n + 9} fields; got {len(words)}")
+    if not 2 + n + 7 <= len(words) <= 2 + n + 9:
+        raise LogFormatError(f"{where}: FLASER with {n} beams has {n + 7} to {n + 9} fields after n; "
+                             f"got {len(words) - 2}")
     ranges = _floats(words[2:2 + n], where)
     x, y, theta, _, _, _, timestamp = _floats(words[2 + n:2 + n + 7], where)
     step = math.pi / n if n % 2 == 0 else math.pi / max(n - 1, 1)
@@ -144,6 +152,10 @@ def _robotlaser(words, where):
     tail = base + 1 + m
     if len(words) < tail + 12:
         raise LogFormatError(f"{where}: ROBOTLASER1 with {n} beams and {m} remissions is truncated")
+    if not (np.isfinite(start) and np.isfinite(step) and step != 0.0 and abs(step) * (n - 1) <= 2 * math.pi + 1e-6
+            and np.isfinite(max_range) and max_range > 0.0):
+        raise LogFormatError(f"{where}: ROBOTLASER1 needs a finite start angle, a non-zero step with all beams within "
+                             f"one turn and a finite maximum range > 0; got {start}, {step}, {max_range}")
     ranges = _floats(words[9:9 + n], where)
     x, y, theta = _floats(words[tail:tail + 3], where)
     timestamp = _floats(words[tail + 11:tail + 12], where)[0]
@@ -176,6 +188,9 @@ def read_carmen(path, *, max_range=None) -> LaserLog:
             scan = _flaser(words, where) if words[0] == "FLASER" else _robotlaser(words, where)
             if not (np.isfinite(scan[0]) and np.all(np.isfinite(scan[3]))):
                 raise LogFormatError(f"{where}: the scan's timestamp or pose is not finite")
+            if np.abs(scan[3][:2]).max() > MAX_COORDINATE or abs(scan[3][2]) > MAX_ANGLE:
+                raise LogFormatError(f"{where}: the scan's pose {tuple(scan[3])} lies beyond {MAX_COORDINATE:g} m "
+                                     f"or {MAX_ANGLE:g} rad")
             raw.append(scan)
         elif words[0] == "ODOM":
             if len(words) < 8:
@@ -229,6 +244,10 @@ def read_tum(path):
     data = np.array(rows)
     if not np.all(np.isfinite(data)):
         raise LogFormatError(f"{path}: values that are not finite")
+    if np.abs(data[:, 1:3]).max() > MAX_COORDINATE:
+        raise LogFormatError(f"{path}: positions beyond {MAX_COORDINATE:g} m")
+    if not np.allclose(np.linalg.norm(data[:, 4:8], axis=1), 1.0, atol=1e-3):
+        raise LogFormatError(f"{path}: quaternions that are not of unit length")
     qx, qy, qz, qw = data[:, 4:8].T
     yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
     return data[:, 0], np.column_stack([data[:, 1], data[:, 2], yaw])

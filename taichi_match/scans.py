@@ -34,6 +34,10 @@ from ._se2 import as_poses
 __all__ = ["SensorModel", "beam_segments", "scans_to_grid", "trinary", "count_traversals"]
 
 
+# Grids cast from scans hold at most this many cells (about 6 GB of arrays while casting).
+MAX_GRID_CELLS = 2**28
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """The hit/miss model of ``scans_to_grid`` (see the module docstring). Metres, log-odds."""
@@ -173,6 +177,9 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
     lo = (np.floor(points.min(axis=0) / resolution) - margin) * resolution
     hi = (np.floor(points.max(axis=0) / resolution) + 1 + margin) * resolution
     cols, rows = np.rint((hi - lo) / resolution).astype(int)
+    if rows * cols > MAX_GRID_CELLS:
+        raise InvalidOptionError(f"the beams span {cols} x {rows} cells at {resolution} m, more than {MAX_GRID_CELLS}: "
+                                 f"a coarser resolution, shorter rays (SensorModel.max_ray_length) or fewer scans")
     hits, misses = count_traversals(starts, ends, hit, lo, resolution, (rows, cols), engine)
     log_odds = np.clip(model.hit * hits + model.miss * misses, -model.clamp, model.clamp)
     prob = 1.0 / (1.0 + np.exp(-log_odds))

@@ -41,7 +41,7 @@ from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
 from .logs import LaserLog
 from .scans import SensorModel, scans_to_grid
 
-__all__ = ["SlamOptions", "SlamResult", "Slam", "slam"]
+__all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "scan_accepted"]
 
 # One scan alone: a return is a wall, a ray free (log-odds +-2: p 0.88 / 0.12, beyond the
 # trinary thresholds that the default model's single observation, +0.9 / -0.4, falls between).
@@ -218,6 +218,10 @@ class Slam:
         odo = log.poses
         if not np.all(np.isfinite(odo)):
             raise InvalidOptionError("the log's odometry poses are not all finite")
+        stamps = log.timestamps
+        if n > 1 and not np.all(np.diff(stamps) > 0):
+            raise InvalidOptionError("the scans' timestamps must increase (the trajectory's TUM file pairs poses "
+                                     "by time)")
         if n > 1 and np.all(odo == odo[0]):
             raise InvalidOptionError("the log has no odometry (every scan carries the same pose); the mapping "
                                      "loop needs it for its guesses")
@@ -329,37 +333,59 @@ def _optimise(gtsam, graph, values):
     return np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()]
                      for k in range(values.size())])
 
-def write_outputs(result: SlamResult, folder, *, source: str = "", force: bool = False) -> dict:
+OUTPUTS = ("trajectory.tum", "map.yaml", "map.pgm", "graph.g2o", "report.md")
+
+
+def output_paths(folder, *, force: bool = False, keep=()) -> dict:
+    """The paths ``write_outputs`` writes in ``folder``, checked before any work: an existing output
+    is an error without ``force``, and always when it is a folder or one of the files in ``keep``
+    (the inputs: a log or a reference never becomes an output). Returns {name: Path}."""
+    from pathlib import Path
+
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise FileExistsError(f"{folder} exists and is not a folder")
+    paths = {name: folder / file for name, file in zip(("trajectory", "map", "image", "graph", "report"), OUTPUTS)}
+    kept = [Path(k).resolve() for k in keep if k]
+    for path in paths.values():
+        if path.resolve() in kept:
+            raise FileExistsError(f"{path} is an input of this run; choose another output folder")
+        if path.is_dir():
+            raise FileExistsError(f"{path} is a folder")
+        if path.exists() and not force:
+            raise FileExistsError(f"{path} exists (use force=True / --force to replace the outputs)")
+    return paths
+
+
+def write_outputs(result: SlamResult, folder, *, source: str = "", force: bool = False, keep=()) -> dict:
     """Write ``trajectory.tum``, ``map.yaml`` + ``map.pgm``, ``graph.g2o`` and ``report.md`` into
-    ``folder`` (created if missing). Existing outputs are replaced only with ``force``; each file
-    is written whole or not at all. Returns {name: path}."""
+    ``folder`` (created if missing), after ``output_paths``'s checks. All five are written to a
+    temporary folder inside ``folder`` first and then moved into place together, with SIGINT,
+    SIGTERM and SIGHUP held back meanwhile: a failure leaves the old outputs, not a mix of old and
+    new. Returns {name: path}."""
+    import shutil
+    import tempfile
     from pathlib import Path
 
     from . import io
     from .logs import write_tum
 
     gtsam = _gtsam()
+    paths = output_paths(folder, force=force, keep=keep)
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    paths = {"trajectory": folder / "trajectory.tum", "map": folder / "map.yaml", "graph": folder / "graph.g2o",
-             "report": folder / "report.md"}
-    image = Path(io.ros_map_paths(paths["map"])[1])
-    existing = [p for p in [*paths.values(), image] if p.exists()]
-    if existing and not force:
-        raise FileExistsError(f"{existing[0]} exists (use force=True / --force to replace the outputs)")
-    io.write_ros_map(result.map, paths["map"])
-    with io._signals_held():
-        for name, writer in (("trajectory", lambda tmp: write_tum(tmp, result.timestamps, result.poses)),
-                             ("graph", lambda tmp: gtsam.writeG2o(_plain_graph(gtsam, result.graph), result.values,
-                                                                  str(tmp))),
-                             ("report", lambda tmp: Path(tmp).write_text(report(result, source)))):
-            tmp = paths[name].with_name(paths[name].name + ".tmp")
-            try:
-                writer(tmp)
-                tmp.replace(paths[name])
-            finally:
-                tmp.unlink(missing_ok=True)
-    paths["image"] = image
+    staging = Path(tempfile.mkdtemp(prefix=".slam-", dir=folder))
+    try:
+        staged = {name: staging / path.name for name, path in paths.items()}
+        io.write_ros_map(result.map, staged["map"])
+        write_tum(staged["trajectory"], result.timestamps, result.poses)
+        gtsam.writeG2o(_plain_graph(gtsam, result.graph), result.values, str(staged["graph"]))
+        staged["report"].write_text(report(result, source))
+        with io._signals_held():
+            for name, path in paths.items():
+                staged[name].replace(path)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return paths
 
 

@@ -120,3 +120,14 @@ def test_slam_reads_a_bag(run, tmp_path):
     write_bag(tmp_path / "run", run.log)
     assert main(["slam", str(tmp_path / "run"), "--out", str(tmp_path / "out")]) == 0
     assert (tmp_path / "out" / "trajectory.tum").exists()
+
+
+def test_bag_scan_geometry_is_checked(run, tmp_path):
+    import dataclasses
+
+    from taichi_match.logs import LaserLog
+
+    flat = tuple(dataclasses.replace(s, angles=np.full(len(s.angles), 0.1)) for s in run.log.scans)
+    write_bag(tmp_path / "flat", LaserLog(flat, run.log.odometry))            # angle_increment 0
+    with pytest.raises(LogFormatError, match="angle_increment"):
+        read_rosbag(tmp_path / "flat")

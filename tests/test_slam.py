@@ -196,3 +196,70 @@ def test_cli_demo_slam(capsys):
     assert main(["demo-slam", "--plot", ""]) == 0
     out = capsys.readouterr().out
     assert "against the simulated truth: ATE" in out and "the odometry alone" in out
+
+
+def test_cli_never_writes_over_its_inputs(short_run, tmp_path, capsys):
+    """A log or a reference named like an output in the output folder: exit 2 before any work,
+    even with --force, and the file intact; so also when an output is a folder."""
+    folder = tmp_path / "d"
+    folder.mkdir()
+    log_path = folder / "report.md"
+    write_carmen(log_path, short_run.log)
+    before = log_path.read_bytes()
+    assert main(["slam", str(log_path), "--out", str(folder), "--force"]) == 2
+    assert log_path.read_bytes() == before and not (folder / "trajectory.tum").exists()
+    from taichi_match.logs import write_tum
+
+    write_carmen(tmp_path / "run.log", short_run.log)
+    write_tum(folder / "trajectory.tum", short_run.log.timestamps, short_run.truth)
+    before = (folder / "trajectory.tum").read_bytes()
+    assert main(["slam", str(tmp_path / "run.log"), "--out", str(folder), "--force",
+                 "--reference", str(folder / "trajectory.tum")]) == 2
+    assert (folder / "trajectory.tum").read_bytes() == before
+    (tmp_path / "e" / "graph.g2o").mkdir(parents=True)
+    assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "e"), "--force"]) == 2
+    assert not (tmp_path / "e" / "map.yaml").exists()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 3 and "Traceback" not in err
+
+
+def test_cli_reference_must_match_the_scans(short_run, tmp_path, capsys):
+    from taichi_match.logs import write_tum
+
+    write_carmen(tmp_path / "run.log", short_run.log)
+    write_tum(tmp_path / "late.tum", short_run.log.timestamps + 5.0, short_run.truth)
+    assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "o"),
+                 "--reference", str(tmp_path / "late.tum")]) == 2
+    assert "timestamps" in capsys.readouterr().err and not (tmp_path / "o" / "trajectory.tum").exists()
+
+
+def test_cli_argument_errors_are_one_line(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["slam", "x.log", "--out", "o", "--submap-scans", "1e9"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("taichi-match: error:") and err.count("\n") == 1
+
+
+def test_timestamps_must_increase(short_run):
+    scans = list(short_run.log.scans)
+    scans[3], scans[4] = scans[4], scans[3]
+    with pytest.raises(InvalidOptionError, match="timestamps"):
+        Slam().run(LaserLog(tuple(scans), short_run.log.odometry))
+
+
+def test_grid_size_is_checked_before_casting(short_run):
+    from taichi_match.scans import scans_to_grid
+
+    with pytest.raises(InvalidOptionError, match="cells"):
+        scans_to_grid(short_run.log.scans[:1], np.zeros((1, 3)), resolution=1e-4)
+
+
+def test_flaser_with_extra_fields_raises(short_run, tmp_path):
+    path = tmp_path / "run.log"
+    write_carmen(path, short_run.log)
+    lines = path.read_text().splitlines()
+    lines[3] = lines[3].replace("FLASER 181", "FLASER 180", 1)          # one range read as a pose field
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(LogFormatError, match="fields"):
+        read_carmen(path)
