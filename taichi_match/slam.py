@@ -39,7 +39,7 @@ from ._matcher import Matcher, MatchOptions
 from ._se2 import compose, inverse, wrap_angle
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
 from .logs import LaserLog
-from .scans import SensorModel, scans_to_grid
+from .scans import SensorModel, beam_segments, scans_to_grid
 
 __all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "scan_accepted"]
 
@@ -116,8 +116,9 @@ class SlamResult:
     graph, values : the gtsam factor graph and its optimised values (keys: scan indices).
     scan_matches : (accepted, tried) front-end matches.
     loops : one dict per loop-closure candidate tried (submaps, anchors, accepted, pose, ...).
-    scans : one dict per front-end match (scan, anchor, pose in the anchor's frame, accepted by
-        the verdict, edge: also within the odometry gate, covariance).
+    scans : one dict per scan after the first (scan, anchor, pose in the anchor's frame, accepted
+        by the verdict, edge: also within the odometry gate, covariance; pose and covariance None
+        when the scan or its submap has no usable reading and was not matched).
     seconds : wall time per stage.
     match_seconds : each front-end match's time (``MatchResult.seconds``, preparing the new
         submap and scan included).
@@ -201,6 +202,10 @@ class Slam:
         d[2] = wrap_angle(d[2])
         return float(d @ np.linalg.solve(cov, d)) <= ODOMETRY_GATE
 
+    def _usable(self, log):
+        """(S,) bool: whether each scan has a reading the submaps would cast."""
+        return np.array([len(beam_segments([scan], np.zeros((1, 3)), self._map_model)[0]) > 0 for scan in log.scans])
+
     def _submap_grid(self, log, submap, est):
         scans = submap.scans
         origin = inverse(est[submap.anchor])
@@ -226,6 +231,7 @@ class Slam:
             raise InvalidOptionError("the log has no odometry (every scan carries the same pose); the mapping "
                                      "loop needs it for its guesses")
         half = opts.submap_scans // 2
+        usable = self._usable(log)
         seconds = {"scan grids": 0.0, "submap grids": 0.0, "scan matching": 0.0, "loop closing": 0.0,
                    "optimisation": 0.0, "final map": 0.0}
         est = np.zeros((n, 3))
@@ -245,23 +251,27 @@ class Slam:
             graph.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*delta), self._odometry_noise(gtsam, delta)))
             pred = compose(est[k - 1], delta)
             target = submaps[0]                           # the older open submap
-            t0 = time.perf_counter()
-            target_grid = self._submap_grid(log, target, est)
-            t1 = time.perf_counter()
-            scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
-                                      model=self._scan_model)
-            t2 = time.perf_counter()
-            res = self._matcher.match(target_grid, scan_grid, compose(inverse(est[target.anchor]), pred))
-            match_seconds.append(res.seconds)
-            seconds["submap grids"] += t1 - t0
-            seconds["scan grids"] += t2 - t1
-            seconds["scan matching"] += time.perf_counter() - t2
-            tried += 1
-            verdict = scan_accepted(res)
+            res = None
+            # a scan without one usable reading (or a submap of such scans) is not matched
+            if usable[k] and usable[target.scans].any():
+                t0 = time.perf_counter()
+                target_grid = self._submap_grid(log, target, est)
+                t1 = time.perf_counter()
+                scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
+                                          model=self._scan_model)
+                t2 = time.perf_counter()
+                res = self._matcher.match(target_grid, scan_grid, compose(inverse(est[target.anchor]), pred))
+                match_seconds.append(res.seconds)
+                seconds["submap grids"] += t1 - t0
+                seconds["scan grids"] += t2 - t1
+                seconds["scan matching"] += time.perf_counter() - t2
+                tried += 1
+            verdict = res is not None and scan_accepted(res)
             gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.anchor]), pred),
                                                            est[k - 1], est[target.anchor], delta)
-            scans.append({"scan": k, "anchor": target.anchor, "pose": res.pose, "accepted": verdict, "edge": gated,
-                          "covariance": res.calibrated_covariance})
+            scans.append({"scan": k, "anchor": target.anchor, "pose": None if res is None else res.pose,
+                          "accepted": verdict, "edge": gated,
+                          "covariance": None if res is None else res.calibrated_covariance})
             if gated:
                 accepted += 1
                 est[k] = compose(est[target.anchor], res.pose)
@@ -279,7 +289,7 @@ class Slam:
             if len(submaps[0].scans) >= opts.submap_scans or k == n - 1:
                 finished = submaps.pop(0)
                 t0 = time.perf_counter()
-                new_loops = self._close_loops(log, finished, done, est, travelled, graph, gtsam)
+                new_loops = self._close_loops(log, finished, done, est, travelled, graph, gtsam, usable)
                 loops += new_loops
                 done.append(finished)
                 t1 = time.perf_counter()
@@ -300,13 +310,15 @@ class Slam:
                           scan_matches=(accepted, tried), loops=loops, scans=scans, seconds=seconds, options=opts,
                           match_seconds=np.array(match_seconds))
 
-    def _close_loops(self, log, submap, done, est, travelled, graph, gtsam):
+    def _close_loops(self, log, submap, done, est, travelled, graph, gtsam, usable):
         opts = self.options
         out = []
+        if not usable[submap.scans].any():
+            return out                                   # final_grid stays None: never matched
         submap.final_grid = self._submap_grid(log, submap, est)
         shared = set(submap.scans)
         for other in done:
-            if shared.intersection(other.scans):
+            if other.final_grid is None or shared.intersection(other.scans):
                 continue
             a, b = other.anchor, submap.anchor
             reach = opts.loop_radius + opts.loop_growth * abs(travelled[b] - travelled[a])

@@ -263,3 +263,16 @@ def test_flaser_with_extra_fields_raises(short_run, tmp_path):
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(LogFormatError, match="fields"):
         read_carmen(path)
+
+
+def test_empty_scans_are_skipped(short_run):
+    """Scans without one usable reading (all NaN or zero) keep the odometry's prediction; the others
+    are mapped as before."""
+    scans = list(short_run.log.scans)
+    for k in (0, 5, 6):
+        scans[k] = dataclasses.replace(scans[k], ranges=np.full(len(scans[k].ranges), np.nan))
+    result = Slam().run(LaserLog(tuple(scans), short_run.log.odometry))
+    assert np.all(np.isfinite(result.poses))
+    skipped = [rec["scan"] for rec in result.scans if rec["pose"] is None]
+    assert {5, 6} <= set(skipped)
+    assert trajectory_errors(result.poses, short_run.truth)["ate_m"] <= 0.10
