@@ -258,6 +258,7 @@ def _temporary_copy(path, data):
     folder, name = os.path.split(os.path.abspath(path))
     fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
     try:
+        os.fchmod(fd, 0o666 & ~_umask())             # as open() would make it (mkstemp: 0600)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -266,6 +267,13 @@ def _temporary_copy(path, data):
         os.unlink(tmp)
         raise
     return tmp
+
+
+def _umask():
+    """The process's umask (read by setting it, then put back at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 @contextlib.contextmanager

@@ -276,3 +276,14 @@ def test_empty_scans_are_skipped(short_run):
     skipped = [rec["scan"] for rec in result.scans if rec["pose"] is None]
     assert {5, 6} <= set(skipped)
     assert trajectory_errors(result.poses, short_run.truth)["ate_m"] <= 0.10
+
+
+def test_outputs_are_readable_like_any_new_file(short_run, tmp_path):
+    """Every output gets the mode open() gives a new file under the umask (the map was 0600)."""
+    import os
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    paths = write_outputs(Slam().run(short_run.log), tmp_path / "out")
+    for path in paths.values():
+        assert (path.stat().st_mode & 0o777) == (0o666 & ~mask), path
