@@ -30,8 +30,8 @@ per map and kept with the prepared map).
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
+from ._blur import wall_transform
 from ._covariance import centroid_metric
 from ._se2 import inverse, transform_points
 
@@ -72,12 +72,10 @@ class WallDistance:
         self.grid = grid
         rows, cols = np.nonzero(occupied)
         self.centres = grid.cell_centres(rows, cols)
-        if distance is not None:
-            self.distance = np.array(distance, dtype=np.float64, copy=True)
-        elif occupied.any():
-            self.distance = ndimage.distance_transform_edt(~occupied)
-        else:
-            self.distance = np.full(p.shape, np.inf)
+        if distance is None:
+            transform = wall_transform(grid)
+            distance = transform[0] if transform is not None else np.full(p.shape, np.inf)
+        self.distance = np.array(distance, dtype=np.float64, copy=True)
         self.distance[np.isnan(p)] = np.nan
 
     def lookup(self, points):

@@ -18,7 +18,7 @@ import numpy as np
 
 from ._errors import LogFileError, LogFormatError
 from .logs import _MAX_BEAMS as MAX_BEAMS
-from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan
+from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan, yaw_of_quaternion
 
 __all__ = ["read_rosbag"]
 
@@ -70,8 +70,7 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
                 msg = reader.deserialize(raw, connection.msgtype)
                 if connection.topic == odom_name:
                     p, q = msg.pose.pose.position, msg.pose.pose.orientation
-                    yaw = np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
-                    odometry.append((_stamp(msg.header), p.x, p.y, yaw))
+                    odometry.append((_stamp(msg.header), p.x, p.y, yaw_of_quaternion(q.x, q.y, q.z, q.w)))
                 else:
                     scans.append(msg)
     except LogFormatError:

@@ -133,9 +133,18 @@ def _flaser(words, where):
                              f"got {len(words) - 2}")
     ranges = _floats(words[2:2 + n], where)
     x, y, theta, _, _, _, timestamp = _floats(words[2 + n:2 + n + 7], where)
+    return timestamp, ranges, flaser_angles(n), np.array([x, y, theta]), None
+
+
+def flaser_angles(n):
+    """The beam angles of a FLASER line with ``n`` beams (see the module docstring)."""
     step = math.pi / n if n % 2 == 0 else math.pi / max(n - 1, 1)
-    angles = -math.pi / 2 + np.arange(n) * step
-    return timestamp, ranges, angles, np.array([x, y, theta]), None
+    return -math.pi / 2 + np.arange(n) * step
+
+
+def yaw_of_quaternion(qx, qy, qz, qw):
+    """The rotation about z of a quaternion (arrays or floats), radians."""
+    return np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
 
 
 def _robotlaser(words, where):
@@ -220,8 +229,7 @@ def write_carmen(path, log: LaserLog):
         f.write("# written by taichi_match.logs.write_carmen\n")
         for scan in log.scans:
             n = len(scan.ranges)
-            step = math.pi / n if n % 2 == 0 else math.pi / max(n - 1, 1)
-            if not np.allclose(scan.angles, -math.pi / 2 + np.arange(n) * step, atol=1e-9):
+            if not np.allclose(scan.angles, flaser_angles(n), atol=1e-9):
                 raise ValueError("FLASER lines hold scans over 180 degrees from -90 only")
             x, y, theta = scan.pose
             ranges = " ".join(f"{r:.3f}" for r in scan.ranges)
@@ -249,7 +257,7 @@ def read_tum(path):
     if not np.allclose(np.linalg.norm(data[:, 4:8], axis=1), 1.0, atol=1e-3):
         raise LogFormatError(f"{path}: quaternions that are not of unit length")
     qx, qy, qz, qw = data[:, 4:8].T
-    yaw = np.arctan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
+    yaw = yaw_of_quaternion(qx, qy, qz, qw)
     return data[:, 0], np.column_stack([data[:, 1], data[:, 2], yaw])
 
 
