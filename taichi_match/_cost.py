@@ -12,7 +12,7 @@ from ._grid import GridMap
 from ._kernels import PAD
 
 __all__ = [
-    "affine_coefficients", "AffineMap", "prior", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
+    "affine_coefficients", "AffineMap", "prior", "prior_terms", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
     "hessian_stencil", "hessian_from_stencil",
 ]
 
@@ -39,11 +39,12 @@ class AffineMap:
     """
 
     def __init__(self, a: GridMap, b: GridMap, pad=PAD):
-        bx, by, b_yaw = b.corner_pose
-        ax, ay, a_yaw = a.corner_pose
-        ratio = b.resolution / a.resolution
-        cd, sd = np.cos(b_yaw - a_yaw), np.sin(b_yaw - a_yaw)
-        ca, sa = np.cos(a_yaw) / a.resolution, np.sin(a_yaw) / a.resolution
+        # plain floats (the same IEEE arithmetic as NumPy's scalars, a tenth of the time)
+        bx, by, b_yaw = (float(v) for v in b.corner_pose)
+        ax, ay, a_yaw = (float(v) for v in a.corner_pose)
+        ratio = float(b.resolution) / float(a.resolution)
+        cd, sd = float(np.cos(b_yaw - a_yaw)), float(np.sin(b_yaw - a_yaw))
+        ca, sa = float(np.cos(a_yaw)) / a.resolution, float(np.sin(a_yaw)) / a.resolution
 
         def coefficients(c, s, x, y, one):
             m00 = (c * cd - s * sd) * ratio       # B's grid axes in A's grid: theta + yaw_B - yaw_A
@@ -55,7 +56,8 @@ class AffineMap:
             # cell centres: + 1/2 cell along both of B's axes
             return [m00, -m10, u0 + 0.5 * (m00 - m10), m10, m00, v0 + 0.5 * (m10 + m00)]
 
-        self._matrix = np.array([coefficients(*row) for row in np.eye(5)])      # (5, 6)
+        self._matrix = np.array([coefficients(*row) for row in ((1.0, 0.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0, 0.0),
+                                 (0.0, 0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 0.0, 1.0))])
 
     def __call__(self, poses):
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
@@ -68,15 +70,34 @@ class AffineMap:
 
 def pose_features(poses, inverse=False):
     """(N, 5) rows (cos theta, sin theta, x, y, 1) of the poses r (N, 3), or of r^-1."""
+    forward = _forward_features(poses)
+    return _inverse_features(forward, poses) if inverse else forward
+
+
+def pose_feature_pair(poses):
+    """``pose_features`` of r and of r^-1 (N, 5) each, from one cosine and sine per pose."""
+    forward = _forward_features(poses)
+    return forward, _inverse_features(forward, poses)
+
+
+def _forward_features(poses):
     out = np.empty((len(poses), 5))
-    c, s = np.cos(poses[:, 2], out=out[:, 0]), np.sin(poses[:, 2], out=out[:, 1])
+    np.cos(poses[:, 2], out=out[:, 0])
+    np.sin(poses[:, 2], out=out[:, 1])
+    out[:, 2], out[:, 3] = poses[:, 0], poses[:, 1]
+    out[:, 4] = 1.0
+    return out
+
+
+def _inverse_features(forward, poses):
+    """r^-1 = (-R^T t, -theta) from the features of r."""
+    out = np.empty_like(forward)
+    c, s = forward[:, 0], forward[:, 1]
     x, y = poses[:, 0], poses[:, 1]
-    if inverse:                                  # r^-1 = (-R^T t, -theta)
-        out[:, 2] = -(c * x + s * y)
-        out[:, 3] = s * x - c * y
-        out[:, 1] = -s
-    else:
-        out[:, 2], out[:, 3] = x, y
+    out[:, 0] = c
+    out[:, 1] = -s
+    out[:, 2] = -(c * x + s * y)
+    out[:, 3] = s * x - c * y
     out[:, 4] = 1.0
     return out
 
@@ -85,25 +106,31 @@ def pose_features(poses, inverse=False):
 # Eq. (7)-(8): h = e + K * ||r - r0||,  ||r|| = sqrt(x^2 + y^2 + L^2 theta^2).
 
 
-def prior(pose, initial_pose, weight, rotation_scale):
-    """Value and gradient of K * ||r - r0|| (eq. 7-8); the gradient at r = r0 is taken as 0."""
+def prior_terms(pose, initial_pose, weight, rotation_scale, min_norm):
+    """K * ||r - r0|| (eq. 7-8) at r: (value, gradient, curvature for a Newton model).
+
+    The gradient at r = r0 is taken as 0. The curvature is ``K W / ||r - r0||``, the Hessian of
+    the quadratic that touches the cone at r from above (as in iteratively reweighted least
+    squares). The cone itself is flat along r - r0, and a model with that zero curvature would
+    step past r0 to the edge of its trust region. The norm is taken as at least ``min_norm`` there.
+    """
     d = np.asarray(pose, dtype=np.float64) - initial_pose
     w = np.array([1.0, 1.0, rotation_scale**2])
     norm = float(np.sqrt(np.dot(w * d, d)))
+    curvature = weight * np.diag(w) / max(norm, min_norm)
     if norm == 0.0:
-        return 0.0, np.zeros(3)
-    return weight * norm, weight * w * d / norm
+        return 0.0, np.zeros(3), curvature
+    return weight * norm, weight * w * d / norm, curvature
+
+
+def prior(pose, initial_pose, weight, rotation_scale):
+    """Value and gradient of K * ||r - r0|| (``prior_terms``)."""
+    return prior_terms(pose, initial_pose, weight, rotation_scale, 1.0)[:2]
 
 
 def prior_hessian(pose, initial_pose, weight, rotation_scale, min_norm):
-    """Curvature of K * ||r - r0|| (eq. 7-8) for a Newton model: ``K W / ||r - r0||``, the Hessian
-    of the quadratic that touches the cone at r from above (as in iteratively reweighted least
-    squares). The cone itself is flat along r - r0, and a model with that zero curvature would
-    step past r0 to the edge of its trust region. The norm is taken as at least ``min_norm``."""
-    d = np.asarray(pose, dtype=np.float64) - initial_pose
-    w = np.array([1.0, 1.0, rotation_scale**2])
-    norm = max(float(np.sqrt(np.dot(w * d, d))), min_norm)
-    return weight * np.diag(w) / norm
+    """The curvature of K * ||r - r0|| for a Newton model (``prior_terms``)."""
+    return prior_terms(pose, initial_pose, weight, rotation_scale, min_norm)[2]
 
 
 def prior_values(poses, initial_pose, weight, rotation_scale):

@@ -26,22 +26,28 @@ gives the same value (up to the nearest-cell lookups). The number of occupied ce
 known cells of the other map is the overlap.
 
 The kernel: for a batch of N poses, per (pose, chunk of ``CHUNK`` points) one partial sum, no
-atomics (bit-identical run after run); A's points go through the inverse poses' affine maps.
-Grids are float32 padded with ``PAD`` cells off the map (-2), unknown = -1; points are a (4, M) float32
-array of columns ``(row, col, w, w * unknown_cost)``, cell indices in their own grid (laid out
-by component: measured 3.5x faster than (M, 4) rows, whose loads do not vectorise).
+atomics (bit-identical run after run); A's points go through the inverse poses' affine maps;
+small batches run on one thread (``SERIAL_BELOW``). Grids are float32 padded with ``PAD`` cells
+off the map (-2), unknown = -1; points are a (4, M) float32 array of columns
+``(row, col, w, w * unknown_cost)``, cell indices in their own grid (laid out by component:
+measured 3.5x faster than (M, 4) rows, whose loads do not vectorise).
 """
 
 import numpy as np
 
-from ._cost import AffineMap, pose_features
+from ._cost import AffineMap, pose_feature_pair
 from ._grid import GridMap
-from ._kernels import PAD, _launch, ensure_initialized, kernel_lock
+from ._kernels import PAD, Launcher, ensure_initialized
 from ._se2 import as_poses, inverse, transform_points
 
 __all__ = ["conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
 
 CHUNK = 256
+# Batches of fewer point lookups (poses times walls of both maps) run on one thread: waking
+# Taichi's worker threads costs more than they save there (measured on the 2-core machine: at
+# 24k lookups 11-18 us serial against 16-24 us in parallel, even at 96k; at 190k parallel wins).
+# The sums are the same either way (one per chunk, each summed in order).
+SERIAL_BELOW = 100_000
 _UNKNOWN = np.float32(-1.0)
 _OFF_MAP = np.float32(-2.0)
 _KERNEL = {}
@@ -92,9 +98,10 @@ def _build(ti):
     @ti.kernel
     def envelope_chunks(grid_a: f32_2d, points_b: f32_2d, affine_b2a: f64_2d,
                         grid_b: f32_2d, points_a: f32_2d, affine_a2b: f64_2d,
-                        out: ti.types.ndarray(dtype=ti.f32, ndim=3)):
+                        out: ti.types.ndarray(dtype=ti.f32, ndim=3), serial: ti.template()):
         chunks_b = (points_b.shape[1] + CHUNK - 1) // CHUNK
         chunks_a = (points_a.shape[1] + CHUNK - 1) // CHUNK
+        ti.loop_config(serialize=serial)
         for k, c in ti.ndrange(affine_b2a.shape[0], chunks_b + chunks_a):
             acc = ti.f32(0.0)
             cnt = 0
@@ -131,6 +138,7 @@ class EnvelopeEngine:
         self._points_a = a.wall_array(unknown_cost)
         self._b2a = AffineMap(a.lower, b.lower)
         self._a2b = AffineMap(b.lower, a.lower)
+        self._launcher = Launcher(_kernel, (self._grid_a, self._points_b, None, self._grid_b, self._points_a, None))
 
     def __call__(self, poses, count="all"):
         """(e (N,), overlap (N,) int64): ``count`` is accepted for the engines' common signature;
@@ -140,13 +148,11 @@ class EnvelopeEngine:
         chunks = -(-self._points_b.shape[1] // CHUNK) + -(-self._points_a.shape[1] // CHUNK)
         if chunks == 0:
             return np.zeros(n), np.zeros(n, dtype=np.int64)
-        affine_b2a = _finite(self._b2a.from_features(pose_features(poses)))
-        affine_a2b = _finite(self._a2b.from_features(pose_features(poses, inverse=True)))
-        out = np.empty((2, n, chunks), dtype=np.float32)
-        with kernel_lock():
-            kernel = _kernel()
-            _launch(kernel, (self._grid_a, self._points_b, affine_b2a, self._grid_b, self._points_a,
-                             affine_a2b, out), None)
+        forward, backward = pose_feature_pair(poses)
+        affine_b2a = _finite(self._b2a.from_features(forward))
+        affine_a2b = _finite(self._a2b.from_features(backward))
+        serial = n * (self._points_b.shape[1] + self._points_a.shape[1]) < SERIAL_BELOW
+        out = self._launcher.run((affine_b2a, affine_a2b), (2, n, chunks), serial)
         return out[0].sum(axis=1, dtype=np.float64), out[1].sum(axis=1, dtype=np.float64).astype(np.int64)
 
 

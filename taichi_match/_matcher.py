@@ -17,8 +17,8 @@ import numpy as np
 
 from ._blur import BLUR_KINDS
 from ._bfgs import MESSAGES, Status, minimize_bfgs, polish
-from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, prior,
-                    prior_hessian, prior_values)
+from ._cost import (gradient_from_stencil, gradient_stencil, hessian_from_stencil, prior, prior_terms,
+                    prior_values)
 from ._covariance import (CALIBRATED_COVARIANCE_SCALE, calibrate, centroid_metric, covariance_floor,
                           covariance_from_hessian, plateau_sd)
 from ._errors import InvalidMapError, InvalidOptionError
@@ -360,8 +360,7 @@ class Matcher:
         b_in_a, a_in_b = placed = placed_walls(walls_a, walls_b, pose)
         comparison = compare_walls(walls_a, walls_b, placed)
         residual = float(e) / max(comparison[0], 1)
-        plateau = min(plateau_sd(prep_a.grid, b_in_a) * prep_a.resolution,
-                      plateau_sd(prep_b.grid, a_in_b) * prep_b.resolution)
+        plateau = min(plateau_sd(*b_in_a) * prep_a.resolution, plateau_sd(*a_in_b) * prep_b.resolution)
         floor = covariance_floor(plateau, prep_b.centroid, prep_b.spread, pose[2])
         calibrated = calibrate(covariance / opts.covariance_scale, residual, floor)
         proof = evidence(comparison, pose, calibrated, degenerate, prep_b.centroid, prep_b.spread)
@@ -541,8 +540,7 @@ class _LevelCost:
             values, counts = self._engine.hessian_stencil(r, self.z_steps, count, basis=self._from_z)
             grad_z, hess_z = gradient_from_stencil(values, self.z_steps), hessian_from_stencil(values, self.z_steps)
             hess = self._to_z.T @ hess_z @ self._to_z                      # eq. (12) in r
-        p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
-        h_prior = prior_hessian(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
+        p_val, p_grad, h_prior = prior_terms(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
         extra = (values[0], None if counts is None else counts[0], hess)
         return (values[0] + p_val, grad_z + self.grad_z(p_grad),
                 hess_z + self._from_z.T @ h_prior @ self._from_z, extra)

@@ -44,31 +44,34 @@ class NewtonResult:
 
 
 def trust_region_step(g, hessian, radius, floor_rtol=1e-6):
-    """The step p minimising g.p + p.B.p/2 with |p| <= radius, B = |hessian| (see module doc).
+    """The step p minimising g.p + p.B.p/2 with |p| <= radius, B = |hessian| (see module doc);
+    g and hessian of 3 components (x, y, theta).
 
     Returns (p, predicted decrease >= 0). After one eigendecomposition the work is on three
-    floats in plain Python, which is faster than NumPy at this size (this runs once a launch).
+    floats in plain Python, written out per component: faster than NumPy, or than loops over
+    lists, at this size (this runs once a launch).
     """
     evals, evecs = np.linalg.eigh(0.5 * (hessian + hessian.T))
-    lam = [abs(float(v)) for v in evals]
-    floor = max(floor_rtol * max(lam), 1e-12)
-    lam = [max(v, floor) for v in lam]
-    gv = [float(v) for v in evecs.T @ g]
+    l0, l1, l2 = abs(float(evals[0])), abs(float(evals[1])), abs(float(evals[2]))
+    floor = max(floor_rtol * max(l0, l1, l2), 1e-12)
+    l0, l1, l2 = max(l0, floor), max(l1, floor), max(l2, floor)
+    g0, g1, g2 = (float(v) for v in evecs.T @ g)
     mu = 0.0
-    p_norm = math.sqrt(sum((gi / li) ** 2 for gi, li in zip(gv, lam)))
+    p_norm = math.sqrt(0 + (g0 / l0) ** 2 + (g1 / l1) ** 2 + (g2 / l2) ** 2)
     if p_norm > radius:
         # the secular equation 1/|p(mu)| = 1/radius by Newton's method (More & Sorensen), which
         # converges monotonically from mu = 0 for this convex model
         for _ in range(30):
-            d = [li + mu for li in lam]
-            p_norm = math.sqrt(sum((gi / di) ** 2 for gi, di in zip(gv, d)))
-            dnorm = -sum(gi * gi / di**3 for gi, di in zip(gv, d)) / p_norm      # d|p|/d mu
+            d0, d1, d2 = l0 + mu, l1 + mu, l2 + mu
+            p_norm = math.sqrt(0 + (g0 / d0) ** 2 + (g1 / d1) ** 2 + (g2 / d2) ** 2)
+            dnorm = -(0 + g0 * g0 / d0**3 + g1 * g1 / d1**3 + g2 * g2 / d2**3) / p_norm      # d|p|/d mu
             mu = max(mu - (1.0 / radius - 1.0 / p_norm) / (dnorm / p_norm**2), 0.0)
             if abs(p_norm - radius) <= 1e-3 * radius:
                 break
-    pv = [-gi / (li + mu) for gi, li in zip(gv, lam)]
-    predicted = -sum(gi * pi + 0.5 * li * pi * pi for gi, pi, li in zip(gv, pv, lam))
-    return evecs @ np.array(pv), max(predicted, 0.0)
+    p0, p1, p2 = -g0 / (l0 + mu), -g1 / (l1 + mu), -g2 / (l2 + mu)
+    predicted = -(0 + (g0 * p0 + 0.5 * l0 * p0 * p0) + (g1 * p1 + 0.5 * l1 * p1 * p1)
+                  + (g2 * p2 + 0.5 * l2 * p2 * p2))
+    return evecs @ np.array([p0, p1, p2]), max(predicted, 0.0)
 
 
 def minimize_newton(evaluate, z0, *, radius, max_radius, xtol, gtol, max_launches, first=None,

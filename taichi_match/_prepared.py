@@ -158,7 +158,16 @@ class EnvelopeDiscrepancy:
             self._evaluate = EnvelopeEngine(a, b, unknown_cost)
         else:
             self._evaluate = NumpyEnvelope(a.lower, a.blurred, b.lower, b.blurred, unknown_cost)
-        self._dense = Engine(name, a, b)
+        self._maps = (a, b)
+        self._dense_engine = None
+
+    @property
+    def _dense(self):
+        """The dense engine that counts the overlap, made when first needed (a middle pyramid
+        level never counts)."""
+        if self._dense_engine is None:
+            self._dense_engine = Engine(self.name, *self._maps)
+        return self._dense_engine
 
     def __call__(self, poses, count="all"):
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)

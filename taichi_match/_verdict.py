@@ -78,26 +78,29 @@ class WallDistance:
         self.distance = np.array(distance, dtype=np.float64, copy=True)
         self.distance[np.isnan(p)] = np.nan
 
-    def lookup(self, points):
-        """Distance to the nearest wall at each map-frame point (NaN: unknown or off the map)."""
-        rows, cols = self.grid.cell_of(points)
+    def lookup(self, rows, cols):
+        """Distance to the nearest wall at continuous grid coordinates (``GridMap.grid_coordinates``;
+        NaN: unknown or off the map)."""
+        rows, cols = np.floor(rows), np.floor(cols)
         h, w = self.grid.shape
         inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        out = np.full(len(points), np.nan)
+        out = np.full(len(rows), np.nan)
         out[inside] = self.distance[rows[inside].astype(np.intp), cols[inside].astype(np.intp)]
         return out
 
 
 def placed_walls(walls_a: WallDistance, walls_b: WallDistance, pose):
-    """(B's walls in A's frame, A's walls in B's frame) at ``pose`` (r_A2B)."""
-    return transform_points(pose, walls_b.centres), transform_points(inverse(pose), walls_a.centres)
+    """(B's walls in A's grid, A's walls in B's grid) at ``pose`` (r_A2B), each as continuous
+    (rows, cols) coordinates (``GridMap.grid_coordinates``)."""
+    return (walls_a.grid.grid_coordinates(transform_points(pose, walls_b.centres)),
+            walls_b.grid.grid_coordinates(transform_points(inverse(pose), walls_a.centres)))
 
 
 def compare_walls(walls_a: WallDistance, walls_b: WallDistance, placed):
     """(walls compared, agreement, conflict) for maps with walls ``walls_a``, ``walls_b`` placed in
     each other's frame by ``placed_walls`` (see the module docstring)."""
     b_in_a, a_in_b = placed
-    d = np.concatenate([walls_a.lookup(b_in_a), walls_b.lookup(a_in_b)])
+    d = np.concatenate([walls_a.lookup(*b_in_a), walls_b.lookup(*a_in_b)])
     d = d[~np.isnan(d)]
     n = len(d)
     return n, (float(np.mean(d <= AGREE_CELLS)) if n else 0.0), (float(np.mean(d > CONFLICT_CELLS)) if n else 1.0)

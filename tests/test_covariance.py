@@ -71,12 +71,12 @@ def test_plateau_sd_is_the_widest_gap_of_the_walls_in_their_cells():
     cells = rng.integers(0, 10, (200, 2)).astype(float)
     # every point at the same place in its cell (a map against itself): e is flat over a whole cell
     same = (cells + [0.3, 0.7]) * 0.5
-    assert plateau_sd(grid, same) == pytest.approx(1 / np.sqrt(12))
+    assert plateau_sd(*grid.grid_coordinates(same)) == pytest.approx(1 / np.sqrt(12))
     # fractions k / 8 along both axes: the widest gap is 1/8 of a cell
     even = (cells + (np.arange(200) % 8)[:, None] / 8.0 + 0.01) * 0.5
-    assert plateau_sd(grid, even) == pytest.approx(0.125 / np.sqrt(12))
+    assert plateau_sd(*grid.grid_coordinates(even)) == pytest.approx(0.125 / np.sqrt(12))
     # fractions 0, 0.1 and 0.6 along x (rows all at one fraction: the row axis decides)
     mixed = np.column_stack([cells[:3, 0] + [0.0, 0.1, 0.6], cells[:3, 1] + 0.5]) * 0.5
-    assert plateau_sd(grid, mixed) == pytest.approx(1 / np.sqrt(12))
+    assert plateau_sd(*grid.grid_coordinates(mixed)) == pytest.approx(1 / np.sqrt(12))
     cols_only = np.column_stack([cells[:3, 0] + [0.05, 0.15, 0.65], cells[:3, 1] + [0.05, 0.45, 0.85]]) * 0.5
-    assert plateau_sd(grid, cols_only) == pytest.approx(0.5 / np.sqrt(12))
+    assert plateau_sd(*grid.grid_coordinates(cols_only)) == pytest.approx(0.5 / np.sqrt(12))

@@ -11,7 +11,7 @@ import taichi_match as tm
 from conftest import rasterize, room_scene
 from taichi_match import (GridMap, InvalidOptionError, Matcher, MatchOptions, PreparedMap, inverse, make_engine,
                           transform_points)
-from taichi_match._envelope import EnvelopeEngine, NumpyEnvelope
+from taichi_match._envelope import SERIAL_BELOW, EnvelopeEngine, NumpyEnvelope
 from taichi_match._grid import trinary
 from taichi_match._pyramid import coarsen
 
@@ -118,6 +118,30 @@ def test_far_poses_mixed_into_a_batch_do_not_disturb_the_others(rng):
     mixed, counts_mixed = engine(np.vstack([near[:1], FAR_POSES, near[1:]]))
     assert mixed[[0, -1]].tolist() == alone.tolist() and counts_mixed[[0, -1]].tolist() == counts_alone.tolist()
     assert np.all(mixed[1:-1] == 0.0) and alone.min() > 0.0
+
+
+def test_relaunches_and_one_thread_give_the_same_sums(rng):
+    """An engine relaunches one launch context per batch shape with new poses copied in; batches
+    under ``SERIAL_BELOW`` lookups run on one thread. Neither may change a bit: the same poses
+    give the same values alone (one thread) as in a large batch (all threads), and a batch seen
+    before gives its first values again after others were launched."""
+    a = sparse_walls_map(rng, (220, 200), 0.05, (-5.0, -5.5), walls=0.3, unknown=0.1)
+    b = sparse_walls_map(rng, (200, 210), 0.05, (-5.2, -5.0), walls=0.3, unknown=0.1)
+    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
+    engine = EnvelopeEngine(pa, pb, 0.3)
+    lookups = pa.walls[0].size + pb.walls[0].size
+    assert lookups < SERIAL_BELOW < 40 * lookups            # one pose on one thread, 40 on all
+    first = rng.normal(0.0, [0.3, 0.3, 0.2], (40, 3))
+    second = rng.normal(0.0, [0.3, 0.3, 0.2], (40, 3))
+    v1, n1 = engine(first)
+    v2, _ = engine(second)
+    assert not np.array_equal(v1, v2)
+    again = engine(first)
+    assert again[0].tolist() == v1.tolist() and again[1].tolist() == n1.tolist()
+    alone = [engine(pose[None, :]) for pose in first]
+    assert [v[0] for v, _ in alone] == v1.tolist() and [n[0] for _, n in alone] == n1.tolist()
+    fresh = EnvelopeEngine(pa, pb, 0.3)(second)[0]
+    assert fresh.tolist() == v2.tolist()
 
 
 # ---------------------------------------------------------------------------------------------
