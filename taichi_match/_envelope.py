@@ -141,8 +141,8 @@ class EnvelopeEngine:
         self._launcher = Launcher(_kernel, (self._grid_a, self._points_b, None, self._grid_b, self._points_a, None))
 
     def __call__(self, poses, count="all"):
-        """(e (N,), overlap (N,) int64): ``count`` is accepted for the engines' common signature;
-        the overlap is always counted (it costs nothing here)."""
+        """(e (N,), overlap (N,) int64): the overlap is counted in the same launch; with ``count``
+        "none" it is not added up and None is returned in its place."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         n = len(poses)
         chunks = -(-self._points_b.shape[1] // CHUNK) + -(-self._points_a.shape[1] // CHUNK)
@@ -153,7 +153,8 @@ class EnvelopeEngine:
         affine_a2b = _finite(self._a2b.from_features(backward))
         serial = n * (self._points_b.shape[1] + self._points_a.shape[1]) < SERIAL_BELOW
         out = self._launcher.run((affine_b2a, affine_a2b), (2, n, chunks), serial)
-        return out[0].sum(axis=1, dtype=np.float64), out[1].sum(axis=1, dtype=np.float64).astype(np.int64)
+        values = out[0].sum(axis=1, dtype=np.float64)
+        return values, (None if count == "none" else out[1].sum(axis=1, dtype=np.float64).astype(np.int64))
 
 
 def _finite(affine):
@@ -174,7 +175,8 @@ class NumpyEnvelope:
             self._sides.append((src.cell_centres(rows, cols), w, dst, dst_upper, forward))
         self._unknown_cost = unknown_cost
 
-    def __call__(self, poses):
+    def __call__(self, poses, count="all"):
+        """(e (N,), overlap (N,) int64), whatever ``count`` says."""
         poses = as_poses(poses)
         values = np.zeros(len(poses))
         counts = np.zeros(len(poses), dtype=np.int64)

@@ -171,7 +171,7 @@ class EnvelopeDiscrepancy:
 
     def __call__(self, poses, count="all"):
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        values = self._evaluate(poses)[0]
+        values = self._evaluate(poses, "none")[0]
         if count == "none":
             return values, None
         if count == "first":
