@@ -79,7 +79,7 @@ def wall_transform(grid: GridMap, occupied: float = 0.5):
     """(distance, (rows, cols)): per cell the distance in cells to the nearest cell with
     p >= ``occupied`` and that cell's index (``ndimage.distance_transform_edt``); None when the map
     has no such cell. The "ramp" and "envelope" blurs and the verdict's wall distances use it."""
-    occ = np.nan_to_num(grid.prob, nan=0.0) >= occupied
+    occ = grid.prob >= occupied                  # False on unknown (NaN) cells
     if not occ.any():
         return None
     return ndimage.distance_transform_edt(~occ, return_indices=True)
@@ -109,6 +109,9 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "enve
         dist, (ri, ci) = transform
         d = dist * (grid.resolution / width)
         profile = np.clip(1.0 - d, 0.0, None) if kind == "ramp" else np.exp(-0.5 * d * d)
-        out = np.fmax(prob, prob[ri, ci] * profile)
+        if prob[prob >= occupied].min() == 1.0:   # every wall at 1 (trinary maps): 1 * profile is profile
+            out = np.fmax(prob, profile)
+        else:
+            out = np.fmax(prob, prob[ri, ci] * profile)
     out[unknown] = np.nan
-    return grid.with_prob(out)
+    return grid._with_trusted(out)

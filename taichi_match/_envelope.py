@@ -61,8 +61,8 @@ def conflict_grid(upper: GridMap) -> np.ndarray:
 
 def wall_points(grid: GridMap, occupied: float = 0.5):
     """(rows, cols, weights): the cells of ``grid`` with p >= ``occupied``, weighted by p."""
-    p = np.nan_to_num(grid.prob, nan=0.0)
-    rows, cols = np.nonzero(p >= occupied)
+    p = grid.prob
+    rows, cols = np.nonzero(p >= occupied)      # False on unknown (NaN) cells
     return rows, cols, p[rows, cols]
 
 

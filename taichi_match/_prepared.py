@@ -53,11 +53,12 @@ class PreparedMap:
         transform = wall_transform(grid) if blur_kind in ("ramp", "envelope") and blur_width > 0 else None
         self._wall_distances = transform[0] if transform is not None else None
         blurred = blur(grid, blur_width, kind=blur_kind, transform=transform)
-        self.blurred = blurred if blurred is not grid else grid.with_prob(grid.prob)   # "envelope": hi
+        self.blurred = blurred if blurred is not grid else grid._with_trusted(grid.prob)   # "envelope": hi
         # the map as compared: blurred for the paper's |p_A - p_B| (``_kernels``); for "envelope" the
-        # map itself (a copy: a strong reference to the caller's map would keep it in the matcher's
-        # weak-keyed cache forever), on which the dense kernel only counts the overlap
-        self.lower = grid.with_prob(grid.prob) if blur_kind == "envelope" else self.blurred
+        # map itself (a GridMap of its own over the same read-only array: a strong reference to the
+        # caller's map would keep it in the matcher's weak-keyed cache forever), on which the dense
+        # kernel only counts the overlap
+        self.lower = grid._with_trusted(grid.prob) if blur_kind == "envelope" else self.blurred
         values = np.where(np.isnan(self.lower.prob), _UNKNOWN, self.lower.prob).astype(np.float32)
         self.padded = np.ascontiguousarray(np.pad(values, PAD, constant_values=_UNKNOWN))   # role A
         self.values = np.ascontiguousarray(values)                                          # role B

@@ -5,7 +5,7 @@ from typing import Literal
 import numpy as np
 
 from ._errors import InvalidOptionError
-from ._grid import GridMap
+from ._grid import GridMap, _trusted
 
 __all__ = ["coarsen"]
 
@@ -21,15 +21,38 @@ def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line
         raise InvalidOptionError(f"reduce must be 'mean', 'max' or 'line'; got {reduce!r}")
     rows, cols = grid.shape
     r2, c2 = -(-rows // factor), -(-cols // factor)
-    padded = np.full((r2 * factor, c2 * factor), np.nan)
-    padded[:rows, :cols] = grid.prob
+    padded = grid.prob
+    if (rows, cols) != (r2 * factor, c2 * factor):
+        padded = np.full((r2 * factor, c2 * factor), np.nan)
+        padded[:rows, :cols] = grid.prob
+    if factor == 2 and reduce != "max":
+        return _trusted(_halve(padded, reduce), grid.resolution * factor, grid.corner_pose)
     blocks = padded.reshape(r2, factor, c2, factor)
-    known = (~np.isnan(blocks)).sum(axis=(1, 3))
+    unknown = np.isnan(blocks)
+    known = (~unknown).sum(axis=(1, 3))
     if reduce == "max":
-        reduced = np.where(np.isnan(blocks), -np.inf, blocks).max(axis=(1, 3))
-    elif reduce == "line":
-        reduced = np.minimum(factor * np.nansum(blocks, axis=(1, 3)) / np.maximum(known, 1), 1.0)
+        reduced = np.where(unknown, -np.inf, blocks).max(axis=(1, 3))
     else:
-        reduced = np.nansum(blocks, axis=(1, 3)) / np.maximum(known, 1)
+        total = np.where(unknown, 0.0, blocks).sum(axis=(1, 3))          # np.nansum, sharing the mask
+        if reduce == "line":
+            reduced = np.minimum(factor * total / np.maximum(known, 1), 1.0)
+        else:
+            reduced = total / np.maximum(known, 1)
     prob = np.where(known > 0, reduced, np.nan)
-    return GridMap(prob, grid.resolution * factor, grid.corner_pose)
+    return _trusted(prob, grid.resolution * factor, grid.corner_pose)     # from a checked map: in [0, 1] or NaN
+
+
+def _halve(prob, reduce):
+    """``coarsen``'s mean or line reduction for factor 2 on a grid of even shape: the four cells of
+    a block added as (a00 + a01) + (a10 + a11), which is what NumPy's sum over the block axes does
+    bit for bit, in half the time (a multi-axis reduction over axes of length 2 is slow)."""
+    unknown = np.isnan(prob)
+    z = np.where(unknown, 0.0, prob)
+    total = (z[0::2, 0::2] + z[0::2, 1::2]) + (z[1::2, 0::2] + z[1::2, 1::2])
+    seen = ~unknown
+    known = (seen[0::2, 0::2].astype(np.int64) + seen[0::2, 1::2]) + (seen[1::2, 0::2].astype(np.int64) + seen[1::2, 1::2])
+    if reduce == "line":
+        reduced = np.minimum(2 * total / np.maximum(known, 1), 1.0)
+    else:
+        reduced = total / np.maximum(known, 1)
+    return np.where(known > 0, reduced, np.nan)

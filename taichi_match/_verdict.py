@@ -68,7 +68,7 @@ class WallDistance:
         """``distance``: the distance transform of the walls (``_blur.wall_transform``'s first
         array) when the caller has it; it is copied, not changed."""
         p = grid.prob
-        occupied = np.nan_to_num(p, nan=0.0) >= 0.5
+        occupied = p >= 0.5                      # False on unknown (NaN) cells
         self.grid = grid
         rows, cols = np.nonzero(occupied)
         self.centres = grid.cell_centres(rows, cols)

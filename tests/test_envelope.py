@@ -3,6 +3,7 @@ against hand values, its symmetry and its minimum at the truth; the line-reduced
 trinary evidence and the options that go with it."""
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -272,6 +273,32 @@ def test_line_reduction_keeps_a_one_cell_wall(index):
     assert np.count_nonzero(once.prob == 1.0) == 8 and np.count_nonzero(once.prob == 0.0) == 56
     assert np.all(twice.prob[wall_at_level_2] == 1.0)
     assert np.count_nonzero(twice.prob == 1.0) == 4 and np.count_nonzero(twice.prob == 0.0) == 12
+
+
+@pytest.mark.parametrize("shape", [(40, 60), (41, 60), (40, 61), (7, 3)])
+@pytest.mark.parametrize("reduce", ["mean", "line", "max"])
+@pytest.mark.parametrize("factor", [2, 3])
+def test_coarsening_equals_a_plain_numpy_block_reduction(shape, reduce, factor, rng):
+    """Any factor, odd shapes: against the blocks reduced with nansum / nanmax over a NaN-padded copy."""
+    prob = rng.random(shape)
+    prob[rng.random(shape) < 0.4] = np.nan
+    prob[:factor, :factor] = np.nan                       # a block with nothing known
+    r2, c2 = -(-shape[0] // factor), -(-shape[1] // factor)
+    padded = np.full((r2 * factor, c2 * factor), np.nan)
+    padded[:shape[0], :shape[1]] = prob
+    blocks = padded.reshape(r2, factor, c2, factor).transpose(0, 2, 1, 3).reshape(r2, c2, -1)
+    known = np.sum(~np.isnan(blocks), axis=2)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)       # all-NaN blocks
+        expected = {"mean": np.nansum(blocks, axis=2) / np.maximum(known, 1),
+                    "line": np.minimum(factor * np.nansum(blocks, axis=2) / np.maximum(known, 1), 1.0),
+                    "max": np.nanmax(blocks, axis=2)}[reduce]
+    expected[known == 0] = np.nan
+    out = coarsen(GridMap(prob, 0.05, (1.0, -2.0, 0.3)), factor, reduce)
+    assert out.shape == (r2, c2) and out.resolution == pytest.approx(0.05 * factor)
+    assert out.corner_pose == (1.0, -2.0, 0.3)
+    np.testing.assert_array_equal(np.isnan(out.prob), known == 0)
+    np.testing.assert_allclose(out.prob, expected, rtol=1e-14, atol=0.0)
 
 
 def test_line_reduction_fades_a_lone_cell_and_mean_and_max_do_as_documented():
