@@ -28,7 +28,7 @@ from typing import Literal
 import numpy as np
 
 from ._errors import InvalidOptionError, InvalidPoseError
-from ._grid import GridMap, trinary
+from ._grid import GridMap, _trusted, trinary
 from ._se2 import as_poses
 
 __all__ = ["SensorModel", "beam_segments", "scans_to_grid", "trinary", "count_traversals"]
@@ -184,4 +184,4 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
     log_odds = np.clip(model.hit * hits + model.miss * misses, -model.clamp, model.clamp)
     prob = 1.0 / (1.0 + np.exp(-log_odds))
     prob[(hits == 0) & (misses == 0)] = np.nan
-    return GridMap(prob, resolution, (float(lo[0]), float(lo[1])))
+    return _trusted(prob, resolution, (float(lo[0]), float(lo[1]), 0.0))     # in (0, 1) or NaN by construction
