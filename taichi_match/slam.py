@@ -53,6 +53,7 @@ SCAN_MODEL = SensorModel(hit=2.0, miss=-2.0)
 # calibrated standard deviation is typically 4-7 cm, which its edge's covariance carries into the
 # graph, where odometry and the other scans outweigh it.
 SCAN_MIN_WALLS = 20
+MIN_CELLS_PER_RAY = 20           # max_ray_length / resolution, at least
 ODOMETRY_GATE = 16.27            # chi-square, 3 degrees of freedom, 99.9 %
 SCAN_MAX_UNCERTAINTY_M = 0.15
 
@@ -97,6 +98,10 @@ class SlamOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {value!r}")
+        if self.max_ray_length / self.resolution < MIN_CELLS_PER_RAY:
+            raise InvalidOptionError(f"max_ray_length / resolution must be at least {MIN_CELLS_PER_RAY} (a ray across at "
+                                     f"least that many cells, or a scan holds too few walls to match); got "
+                                     f"{self.max_ray_length!r} m / {self.resolution!r} m")
         for name in ("loop_radius", "loop_growth"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
@@ -230,6 +235,13 @@ class Slam:
         if n > 1 and np.all(odo == odo[0]):
             raise InvalidOptionError("the log has no odometry (every scan carries the same pose); the mapping "
                                      "loop needs it for its guesses")
+        steps = np.hypot(*np.diff(odo[:, :2], axis=0).T) if n > 1 else np.zeros(0)
+        if len(steps) and steps.max() > opts.max_ray_length:
+            k = int(np.argmax(steps)) + 1
+            raise InvalidOptionError(f"the odometry jumps {steps[k - 1]:.1f} m between scans {k - 1} and {k}, farther "
+                                     f"than a ray reaches (max_ray_length {opts.max_ray_length:g} m): the scans cannot "
+                                     f"overlap, and a submap across the jump would be mostly empty; the odometry is "
+                                     f"broken there (split the log)")
         half = opts.submap_scans // 2
         usable = self._usable(log)
         seconds = {"scan grids": 0.0, "submap grids": 0.0, "scan matching": 0.0, "loop closing": 0.0,
@@ -354,6 +366,9 @@ def output_paths(folder, *, force: bool = False, keep=()) -> dict:
     (the inputs: a log or a reference never becomes an output). Returns {name: Path}."""
     from pathlib import Path
 
+    if not str(folder).strip():
+        raise InvalidOptionError("the output folder must be named (an empty path would write into the current "
+                                 "folder)")
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise FileExistsError(f"{folder} exists and is not a folder")

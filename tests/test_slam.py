@@ -241,6 +241,32 @@ def test_cli_argument_errors_are_one_line(capsys):
     assert err.startswith("taichi-match: error:") and err.count("\n") == 1
 
 
+def test_useless_geometry_and_broken_odometry_are_refused_before_any_work(short_run, tmp_path, capsys):
+    with pytest.raises(InvalidOptionError, match="cells"):
+        SlamOptions(resolution=10.0)                       # a 20 m ray across 2 cells
+    jumped = tuple(dataclasses.replace(s, pose=s.pose + (2000.0 if k >= 7 else 0.0) * np.array([1.0, 0.0, 0.0]))
+                   for k, s in enumerate(short_run.log.scans))
+    with pytest.raises(InvalidOptionError, match=r"jumps 2000\.\d m between scans 6 and 7"):
+        Slam().run(LaserLog(jumped, short_run.log.odometry))
+    from taichi_match.slam import output_paths
+
+    with pytest.raises(InvalidOptionError, match="named"):
+        output_paths("")
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    assert main(["slam", str(log_path), "--out", ""]) == 2
+    assert "must be named" in capsys.readouterr().err
+
+
+def test_cli_exits_1_when_no_scan_match_is_accepted(short_run, tmp_path, capsys):
+    # rays cut at 1 m see no wall (the corridor's walls are farther): nothing to match
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    assert main(["slam", str(log_path), "--out", str(tmp_path / "out"), "--max-ray", "1.0"]) == 1
+    assert "no scan match was accepted" in capsys.readouterr().err
+    assert (tmp_path / "out" / "trajectory.tum").exists()
+
+
 def test_timestamps_must_increase(short_run):
     scans = list(short_run.log.scans)
     scans[3], scans[4] = scans[4], scans[3]
