@@ -142,7 +142,8 @@ class EnvelopeEngine:
 
     def __call__(self, poses, count="all"):
         """(e (N,), overlap (N,) int64): the overlap is counted in the same launch; with ``count``
-        "none" it is not added up and None is returned in its place."""
+        "none" it is not added up and None is returned in its place; with "b_walls" it is B's
+        walls alone that land on known cells of A."""
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         n = len(poses)
         chunks = -(-self._points_b.shape[1] // CHUNK) + -(-self._points_a.shape[1] // CHUNK)
@@ -154,7 +155,10 @@ class EnvelopeEngine:
         serial = n * (self._points_b.shape[1] + self._points_a.shape[1]) < SERIAL_BELOW
         out = self._launcher.run((affine_b2a, affine_a2b), (2, n, chunks), serial)
         values = out[0].sum(axis=1, dtype=np.float64)
-        return values, (None if count == "none" else out[1].sum(axis=1, dtype=np.float64).astype(np.int64))
+        if count == "none":
+            return values, None
+        counted = out[1, :, :-(-self._points_b.shape[1] // CHUNK)] if count == "b_walls" else out[1]
+        return values, counted.sum(axis=1, dtype=np.float64).astype(np.int64)
 
 
 def _finite(affine):

@@ -148,7 +148,7 @@ def _pin_threads(thread_ids):
             return
 
 
-COUNT_MODES = {"none": 0, "first": 1, "all": 2}   # which poses of a batch get an overlap count
+COUNT_MODES = {"none": 0, "first": 1, "any": 1, "all": 2}   # which poses of a batch get an overlap count
 
 
 def _build_kernel(ti):

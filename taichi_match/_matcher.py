@@ -383,7 +383,8 @@ class Matcher:
             # the overlap is needed at the start (is there any?) and at the end (the result's)
             count = "first" if level == 0 and cost.counts_free else "none"
             evaluate = functools.partial(cost.value_gradient_hessian, count=count)
-            first = cost.value_gradient_hessian(cost.to_z(r), count="first" if level == top else count)
+            # at the top: is there any overlap? (exact only when the top level is also the last)
+            first = cost.value_gradient_hessian(cost.to_z(r), count=("any" if level else "first") if level == top else count)
             if level == top and first[3][1] == 0:
                 return r0, Status.NO_OVERLAP, 0, first[0], 0.0, 0, np.zeros((3, 3))
             if level == top:
@@ -497,7 +498,7 @@ class _LevelCost:
         return self._from_z.T @ grad_r
 
     def _count(self, poses, count="none"):
-        self._counter.launches += 1 if count == "none" or self.counts_free else 2
+        self._counter.launches += 1 if count in ("none", "any") or self.counts_free else 2
         self._counter.poses += poses
 
     def overlap(self, r):
@@ -537,7 +538,9 @@ class _LevelCost:
             grad_z, hess_z = self.grad_z(grads[0]), self._from_z.T @ hess @ self._from_z
         else:
             self._count(25, count)
+            spared = getattr(self._engine, "dense_launches", 0)        # count="any": a launch only if needed
             values, counts = self._engine.hessian_stencil(r, self.z_steps, count, basis=self._from_z)
+            self._counter.launches += getattr(self._engine, "dense_launches", 0) - spared
             grad_z, hess_z = gradient_from_stencil(values, self.z_steps), hessian_from_stencil(values, self.z_steps)
             hess = self._to_z.T @ hess_z @ self._to_z                      # eq. (12) in r
         p_val, p_grad, h_prior = prior_terms(r, self._r0, self.weight, self._rotation_scale, self.steps[0])

@@ -121,6 +121,25 @@ def test_far_poses_mixed_into_a_batch_do_not_disturb_the_others(rng):
     assert np.all(mixed[1:-1] == 0.0) and alone.min() > 0.0
 
 
+def test_count_any_spares_the_dense_launch_only_when_walls_show_the_overlap(room_pair):
+    a, b = room_pair
+    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
+    engine = make_engine("taichi", pa, pb, 0.3)
+    near = np.array([TRUTH, (0.3, 0.1, 0.2)])
+    values, counts = engine(near, "any")
+    exact = engine(near, "first")[1]
+    assert engine.dense_launches == 0 and counts[0] > 0 and exact[0] > 0
+    assert values.tolist() == engine(near, "none")[0].tolist()
+    # B's walls all off A: the dense count decides, exactly
+    far = np.array([(0.0, 1e4, 0.0)])
+    assert engine(far, "any")[1].tolist() == [0] and engine.dense_launches == 1
+    # A's edge: B shifted until a few of its walls are left on A, the dense count decides too
+    edge = np.array([(0.0, 5.94, 0.02)])
+    walls = engine._evaluate(edge, "b_walls")[1][0]
+    assert 0 < walls < 10 and engine(edge, "any")[1][0] == engine(edge, "first")[1][0] > 0
+    assert engine.dense_launches == 2
+
+
 def test_relaunches_and_one_thread_give_the_same_sums(rng):
     """An engine relaunches one launch context per batch shape with new poses copied in; batches
     under ``SERIAL_BELOW`` lookups run on one thread. Neither may change a bit: the same poses
