@@ -17,6 +17,14 @@ def test_wall_distance_equals_scipy_bit_for_bit(share, rng):
         np.testing.assert_array_equal(wall_distance(walls), ndimage.distance_transform_edt(~walls))
 
 
+def test_grids_beyond_the_kept_scratch_size_are_exact_too(rng, monkeypatch):
+    from taichi_match import _distance
+
+    monkeypatch.setattr(_distance._Scratch, "KEEP_CELLS", 100)     # every buffer fresh
+    walls = rng.random((60, 45)) < 0.05
+    np.testing.assert_array_equal(wall_distance(walls), ndimage.distance_transform_edt(~walls))
+
+
 def test_no_wall_is_infinitely_far():
     assert np.all(np.isinf(wall_distance(np.zeros((4, 6), dtype=bool))))
 

@@ -72,6 +72,10 @@ def test_matching_goes_on_after_a_host_initialises_or_resets_taichi_again():
         third = tm.match(g, g, (0.1, 0.1, 0.05))
         assert np.allclose(first.pose, again.pose) and np.allclose(first.pose, third.pose), (first, again, third)
         assert abs(first.pose[1]) < 0.05
+        # a map prepared after the reset: the distance transform's kernel is compiled anew too
+        h = corridor(size=4.0, width=2.5, resolution=0.05)
+        fourth = tm.match(h, h, (0.1, 0.1, 0.05))
+        assert abs(fourth.pose[1]) < 0.05 and fourth.converged
     """)
     assert out.returncode == 0, out.stderr
 
