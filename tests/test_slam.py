@@ -45,9 +45,10 @@ def test_simulated_run_recovers_the_truth(simulated, mapped):
     assert sum(loop["accepted"] for loop in mapped.loops) >= 5
 
 
-@pytest.mark.xfail(reason="issue 12 open: RPE over 10 scans is 3.0 cm / 0.39 deg on the simulated run "
-                          "(target 3 cm / 0.3 deg); bench/SLAM.md", strict=True)
 def test_simulated_run_relative_error_within_target(simulated, mapped):
+    """The issue's RPE target on this run (2.9 cm / 0.25 deg since scans without an edge stay out
+    of the submaps until placed; it was 3.0 cm / 0.39 deg). Not with margin: runs with the
+    odometry moved by a micrometre reach 3.6 cm / 0.79 deg (bench/SLAM.md's spread table)."""
     errors = trajectory_errors(mapped.poses, simulated.truth)
     assert errors["rpe_m"] <= 0.03 and errors["rpe_deg"] <= 0.3, errors
 
