@@ -350,10 +350,9 @@ class Launcher:
 
     _MAX_SHAPES = 8              # batch shapes kept (the optimisers use two or three)
 
-    def __init__(self, kernel, layout, mode=None):
+    def __init__(self, kernel, layout):
         self._kernel = kernel    # called under the lock: returns the Taichi kernel
         self._layout = layout
-        self._mode = mode
         self._bound = {}
 
     def run(self, inputs, out_shape, mode=None):

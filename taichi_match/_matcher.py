@@ -383,8 +383,9 @@ class Matcher:
             # the overlap is needed at the start (is there any?) and at the end (the result's)
             count = "first" if level == 0 and cost.counts_free else "none"
             evaluate = functools.partial(cost.value_gradient_hessian, count=count)
-            # at the top: is there any overlap? (exact only when the top level is also the last)
-            first = cost.value_gradient_hessian(cost.to_z(r), count=("any" if level else "first") if level == top else count)
+            # at the top: is there any overlap? (the exact count only when the top level is also the last)
+            first_count = ("any" if top > 0 else "first") if level == top else count
+            first = cost.value_gradient_hessian(cost.to_z(r), count=first_count)
             if level == top and first[3][1] == 0:
                 return r0, Status.NO_OVERLAP, 0, first[0], 0.0, 0, np.zeros((3, 3))
             if level == top:
