@@ -117,10 +117,15 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "enve
             return grid
         dist, nearest = transform
         d = dist * (grid.resolution / width)
-        profile = np.clip(1.0 - d, 0.0, None) if kind == "ramp" else np.exp(-0.5 * d * d)
+        if kind == "ramp":
+            profile = np.clip(1.0 - d, 0.0, None)
+        else:                                    # exp(-0.5 * d * d), in place: fresh arrays cost page faults
+            profile = d * -0.5
+            profile *= d
+            np.exp(profile, out=profile)
         if nearest is None:                      # every wall at 1 (trinary maps): 1 * profile is profile
-            out = np.fmax(prob, profile)
+            out = np.fmax(prob, profile, out=profile)
         else:
-            out = np.fmax(prob, prob[nearest[0], nearest[1]] * profile)
+            out = np.fmax(prob, prob[nearest[0], nearest[1]] * profile, out=profile)
     out[unknown] = np.nan
     return grid._with_trusted(out)

@@ -55,8 +55,12 @@ _KERNEL = {}
 
 def conflict_grid(upper: GridMap) -> np.ndarray:
     """``1 - hi`` as the padded float32 lookup grid (unknown -1, the ring off the map -2)."""
-    c = np.where(np.isnan(upper.prob), _UNKNOWN, 1.0 - upper.prob).astype(np.float32)
-    return np.ascontiguousarray(np.pad(c, PAD, constant_values=_OFF_MAP))
+    p = upper.prob
+    out = np.full((p.shape[0] + 2 * PAD, p.shape[1] + 2 * PAD), _OFF_MAP, dtype=np.float32)
+    inner = out[PAD:PAD + p.shape[0], PAD:PAD + p.shape[1]]
+    np.subtract(1.0, p, out=inner, casting="unsafe")          # in float64, rounded to float32 once
+    inner[np.isnan(p)] = _UNKNOWN
+    return out
 
 
 def wall_points(grid: GridMap, occupied: float = 0.5):

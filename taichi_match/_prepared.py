@@ -7,6 +7,7 @@ Unknown is -1. With the "envelope" blur these hold the map itself (to count the 
 the conflict grid and the occupied cells that the envelope discrepancy (``_envelope``) uses.
 """
 
+import functools
 import weakref
 
 import numpy as np
@@ -61,32 +62,70 @@ class PreparedMap:
         # caller's map would keep it in the matcher's weak-keyed cache forever), on which the dense
         # kernel only counts the overlap
         self.lower = grid._with_trusted(grid.prob) if blur_kind == "envelope" else self.blurred
-        values = np.where(np.isnan(self.lower.prob), _UNKNOWN, self.lower.prob).astype(np.float32)
-        self.padded = np.ascontiguousarray(np.pad(values, PAD, constant_values=_UNKNOWN))   # role A
-        self.values = np.ascontiguousarray(values)                                          # role B
         if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
             self.conflict = conflict_grid(self.blurred)
             self.walls = wall_points(grid)
-        known = grid.known
-        rows = np.flatnonzero(known.any(axis=1))
-        first = known[rows].argmax(axis=1)
-        last = known.shape[1] - known[rows][:, ::-1].argmax(axis=1)
-        self.rows = np.ascontiguousarray(np.column_stack([rows, first, last]), dtype=np.int32)  # (R, 3)
-        self.n_known = int(known.sum())
-        # rms distance of the known cells from the map frame's origin: a rotation by d theta moves
-        # a typical cell by radius * d theta (at least one cell, for maps of a single cell)
-        centres = grid.cell_centres(*np.nonzero(known))
-        self.radius = max(float(np.sqrt(np.mean(np.sum(centres**2, axis=1)))) if len(centres) else 0.0,
-                          grid.resolution)
-        # the known cells' centroid in the map frame, and their rms distance from it
-        self.centroid = centres.mean(axis=0) if len(centres) else np.zeros(2)
-        self.spread = max(float(np.sqrt(np.mean(np.sum((centres - self.centroid) ** 2, axis=1))))
-                          if len(centres) else 0.0, grid.resolution)
+        self.n_known = int(grid.known.sum())
+        # padded, values, rows, radius, centroid and spread are made when first asked for: the
+        # envelope's coarser levels seldom need the first three and never the last three
 
         self._coarser = None
         self._coarser_grid = None
         self._wall_distance = None
         self._wall_arrays = {}
+
+    @functools.cached_property
+    def values(self) -> np.ndarray:
+        """Role B: the compared map as a float32 grid, unknown -1."""
+        p = self.lower.prob
+        values = p.astype(np.float32, order="C")
+        values[np.isnan(p)] = _UNKNOWN
+        return values
+
+    @functools.cached_property
+    def padded(self) -> np.ndarray:
+        """Role A: ``values`` padded with a ring of ``PAD`` unknown cells."""
+        h, w = self.values.shape
+        padded = np.full((h + 2 * PAD, w + 2 * PAD), _UNKNOWN, dtype=np.float32)
+        padded[PAD:PAD + h, PAD:PAD + w] = self.values
+        return padded
+
+    @functools.cached_property
+    def rows(self) -> np.ndarray:
+        """Role B: (R, 3) int32 rows holding known cells, with their first and last known column + 1."""
+        known = self.lower.known
+        rows = np.flatnonzero(known.any(axis=1))
+        first = known[rows].argmax(axis=1)
+        last = known.shape[1] - known[rows][:, ::-1].argmax(axis=1)
+        return np.ascontiguousarray(np.column_stack([rows, first, last]), dtype=np.int32)
+
+    @functools.cached_property
+    def _moments(self):
+        known = self.lower.known
+        centres = self.lower.cell_centres(*np.nonzero(known))
+        # rms distance of the known cells from the map frame's origin: a rotation by d theta moves
+        # a typical cell by radius * d theta (at least one cell, for maps of a single cell)
+        radius = max(float(np.sqrt(np.mean(np.sum(centres**2, axis=1)))) if len(centres) else 0.0, self.resolution)
+        # the known cells' centroid in the map frame, and their rms distance from it
+        centroid = centres.mean(axis=0) if len(centres) else np.zeros(2)
+        spread = max(float(np.sqrt(np.mean(np.sum((centres - centroid) ** 2, axis=1)))) if len(centres) else 0.0,
+                     self.resolution)
+        return radius, centroid, spread
+
+    @property
+    def radius(self) -> float:
+        """Rms distance of the known cells from the map frame's origin, metres (at least a cell)."""
+        return self._moments[0]
+
+    @property
+    def centroid(self) -> np.ndarray:
+        """(2,) the known cells' centroid in the map frame."""
+        return self._moments[1]
+
+    @property
+    def spread(self) -> float:
+        """Rms distance of the known cells from their centroid, metres (at least a cell)."""
+        return self._moments[2]
 
     @property
     def grid(self) -> GridMap:
@@ -101,7 +140,9 @@ class PreparedMap:
     def wall_distance(self):
         """The map's walls and their distance transform, for the verdict (computed once)."""
         if self._wall_distance is None:
-            self._wall_distance = WallDistance(self.grid, self._wall_distances)
+            walls = self.walls[:2] if self.blur_kind == "envelope" else None     # wall_points' are p >= 0.5
+            self._wall_distance = WallDistance(self.grid, self._wall_distances, walls)
+            self._wall_distances = None                                           # taken over
         return self._wall_distance
 
     def wall_array(self, unknown_cost):

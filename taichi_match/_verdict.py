@@ -64,18 +64,18 @@ class WallDistance:
     """A map's walls (p >= 0.5) and, per cell, the distance in cells to the nearest one (NaN on
     unknown cells)."""
 
-    def __init__(self, grid, distance=None):
+    def __init__(self, grid, distance=None, walls=None):
         """``distance``: the distance transform of the walls (``_blur.wall_transform``'s first
-        array) when the caller has it; it is copied, not changed."""
+        array, float64) when the caller has it, which this takes over (its unknown cells become
+        NaN); ``walls``: (rows, cols) of the cells with p >= 0.5 when the caller has them."""
         p = grid.prob
-        occupied = p >= 0.5                      # False on unknown (NaN) cells
         self.grid = grid
-        rows, cols = np.nonzero(occupied)
+        rows, cols = np.nonzero(p >= 0.5) if walls is None else walls        # False on unknown (NaN) cells
         self.centres = grid.cell_centres(rows, cols)
         if distance is None:
             transform = wall_transform(grid)
             distance = transform[0] if transform is not None else np.full(p.shape, np.inf)
-        self.distance = np.array(distance, dtype=np.float64, copy=True)
+        self.distance = distance
         self.distance[np.isnan(p)] = np.nan
 
     def lookup(self, rows, cols):

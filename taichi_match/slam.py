@@ -75,6 +75,10 @@ class SlamOptions:
 
     resolution : cell side of the submaps and the final map, metres.
     submap_scans : scans per submap (even, >= 4); a new submap every ``submap_scans // 2``.
+    target_refresh : the front end's target (the older open submap) is cast and prepared again
+        after this many scans, and whenever it changes or the graph was optimised: 1 casts it
+        for every scan (with the scan before it); ``submap_scans // 2`` or more casts it once
+        per submap, when it becomes the target.
     max_ray_length : beams are cut there (metres) in submaps and scans.
     odometry_sd : (metres per metre travelled, radians per radian turned, radians per metre,
         metres floor, radians floor): the standard deviations of an odometry step's translation
@@ -88,6 +92,7 @@ class SlamOptions:
 
     resolution: float = 0.05
     submap_scans: int = 10
+    target_refresh: int = 1
     max_ray_length: float = 20.0
     odometry_sd: tuple = (0.02, 0.02, math.radians(0.3), 0.005, math.radians(0.1))
     loop_radius: float = 3.0
@@ -96,6 +101,9 @@ class SlamOptions:
     matcher: MatchOptions = field(default_factory=MatchOptions)
 
     def __post_init__(self):
+        if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)
+                and self.target_refresh >= 1):
+            raise InvalidOptionError(f"target_refresh must be an integer >= 1; got {self.target_refresh!r}")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {self.submap_scans!r}")
         for name in ("resolution", "max_ray_length", "robust_kernel"):
@@ -262,6 +270,7 @@ class Slam:
         travelled = np.zeros(n)                 # odometry path length up to each scan
         accepted = tried = 0
         loops, scans, match_seconds = [], [], []
+        target_cast = None                      # (submap, scan, grid): the front end's target as last cast
         for k in range(1, n):
             delta = compose(inverse(odo[k - 1]), odo[k])
             travelled[k] = travelled[k - 1] + math.hypot(delta[0], delta[1])
@@ -272,12 +281,13 @@ class Slam:
             # a scan without one usable reading (or a submap of such scans) is not matched
             if usable[k] and castable[target.scans].any():
                 t0 = time.perf_counter()
-                target_grid = self._submap_grid(log, target, est, castable)
+                if target_cast is None or target_cast[0] is not target or k - target_cast[1] >= opts.target_refresh:
+                    target_cast = (target, k, self._submap_grid(log, target, est, castable))
                 t1 = time.perf_counter()
                 scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
                                           model=self._scan_model)
                 t2 = time.perf_counter()
-                res = self._matcher.match(target_grid, scan_grid, compose(inverse(est[target.anchor]), pred))
+                res = self._matcher.match(target_cast[2], scan_grid, compose(inverse(est[target.anchor]), pred))
                 match_seconds.append(res.seconds)
                 seconds["submap grids"] += t1 - t0
                 seconds["scan grids"] += t2 - t1
@@ -313,6 +323,7 @@ class Slam:
                 t1 = time.perf_counter()
                 seconds["loop closing"] += t1 - t0
                 est[:k + 1] = _optimise(gtsam, graph, values)
+                target_cast = None                       # cast again at the new estimates
                 castable[:k + 1] = usable[:k + 1]        # the graph has placed every scan so far
                 values = _values(gtsam, est[:k + 1])
                 seconds["optimisation"] += time.perf_counter() - t1
@@ -353,7 +364,6 @@ class Slam:
                 cov = _tangent_covariance(res.pose, res.calibrated_covariance)
                 graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return out
-
 
 
 def _optimise(gtsam, graph, values):

@@ -139,10 +139,43 @@ def test_truncated_log_raises(short_run, tmp_path):
 
 @pytest.mark.parametrize("field, value", [("submap_scans", 5), ("submap_scans", 2), ("resolution", 0.0),
                                           ("loop_radius", -1.0), ("odometry_sd", (0.1, 0.1)),
-                                          ("odometry_sd", (0.1, 0.1, 0.1, 0.0, 0.1)), ("max_ray_length", math.nan)])
+                                          ("odometry_sd", (0.1, 0.1, 0.1, 0.0, 0.1)), ("max_ray_length", math.nan),
+                                          ("target_refresh", 0), ("target_refresh", 2.0), ("target_refresh", True)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
+
+
+@pytest.mark.parametrize("refresh", [1, 3, 5])
+def test_target_is_cast_again_after_target_refresh_scans(short_run, monkeypatch, refresh):
+    """The front end casts its target for the first scan matched against it, then again once
+    ``target_refresh`` scans have passed or the graph was optimised (every ``submap_scans // 2``
+    scans, when the target changes): counted against the scans matched, independently."""
+    casts = []
+    original = Slam._submap_grid
+
+    def counting(self, log, submap, est, cast=None):
+        if cast is not None:                       # the front end's target (loop closing passes none)
+            casts.append(submap.index)
+        return original(self, log, submap, est, cast)
+
+    monkeypatch.setattr(Slam, "_submap_grid", counting)
+    result = Slam(target_refresh=refresh).run(short_run.log)
+    size, half = result.options.submap_scans, result.options.submap_scans // 2
+    matched = [s["scan"] for s in result.scans if s["pose"] is not None]
+    # the first submap is the target of scans 1 .. size - 1, each later one of the next half
+    # scans; within a target's scans a cast happens at its first matched scan and then at the first
+    # matched scan at least ``refresh`` later
+    period = {k: max(0, (k - size) // half + 1) for k in matched}
+    expected = 0
+    for p in sorted(set(period.values())):
+        last = None
+        for k in (k for k in matched if period[k] == p):
+            if last is None or k - last >= refresh:
+                expected, last = expected + 1, k
+    assert len(casts) == expected
+    if refresh == 1:
+        assert len(casts) == len(matched)
 
 
 def test_cast_scan_against_geometry():
