@@ -5,8 +5,9 @@ FLASER lines), then against ``NAME.reference.tum``:
 
 - ATE after one rigid SE(2) alignment and RPE over 10 scans, metres and degrees, beside the
   odometry's (``taichi_match.evaluation``, checked against evo in the tests);
-- loop closures tried / accepted / wrong (wrong: the accepted relative pose of the two anchors
-  differs from the reference's by more than 0.2 m or 1 degree, Cartographer's criterion);
+- loop closures tried / accepted by the verdict / in the graph (also consistent with their
+  neighbours) / wrong (in the graph, and the relative pose of the two anchors differs from the
+  reference's by more than 0.2 m or 1 degree, Cartographer's criterion);
 - scan-to-submap matches accepted; wall time per scan, per stage; the front-end match's median
   (preparing the new submap and scan included);
 - a picture per log: the trajectory and the reference over the map (``--plots DIR``);
@@ -45,10 +46,10 @@ TARGETS = {"ate_m": 0.10, "ate_deg": 1.0, "rpe_m": 0.03, "rpe_deg": 0.3}
 
 
 def wrong_loops(loops, reference):
-    """Accepted loop closures whose relative pose is off the reference's by > 0.2 m or > 1 degree."""
+    """Loop closures in the graph whose relative pose is off the reference's by > 0.2 m or > 1 degree."""
     out = 0
     for loop in loops:
-        if loop["accepted"]:
+        if loop["edge"]:
             a, b = loop["anchors"]
             e = compose(inverse(compose(inverse(reference[a]), reference[b])), loop["pose"])
             out += bool(np.hypot(e[0], e[1]) > 0.2 or abs(np.degrees(wrap_angle(e[2]))) > 1.0)
@@ -64,6 +65,7 @@ def run_one(name, log, reference, plots=None, options=None):
     row = dict(log=name, scans=len(log), **errors, **{f"odo_{k}": v for k, v in odometry.items()},
                scan_accepted=result.scan_matches[0], scan_tried=result.scan_matches[1],
                loops_tried=len(result.loops), loops_accepted=sum(lp["accepted"] for lp in result.loops),
+               loops_edges=sum(lp["edge"] for lp in result.loops),
                loops_wrong=wrong_loops(result.loops, reference), ms_per_scan=1e3 * wall / len(log),
                match_ms=1e3 * float(np.median(result.match_seconds)),
                stages={k: 1e3 * v / len(log) for k, v in result.seconds.items()})
@@ -104,7 +106,7 @@ def table(rows):
     def flag(row, key):
         return "" if row[key] <= TARGETS[key] else " *"
     lines = ["| log | scans | ATE m | ATE deg | RPE10 m | RPE10 deg | odometry ATE m / deg | odometry RPE10 m / deg "
-             "| ATE / odometry ATE | scan matches accepted | loops tried / accepted / wrong | ms per scan "
+             "| ATE / odometry ATE | scan matches accepted | loops tried / accepted / in the graph / wrong | ms per scan "
              "| front-end match median ms |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -113,7 +115,7 @@ def table(rows):
             f"| {r['rpe_m']:.3f}{flag(r, 'rpe_m')} | {r['rpe_deg']:.2f}{flag(r, 'rpe_deg')} "
             f"| {r['odo_ate_m']:.2f} / {r['odo_ate_deg']:.1f} | {r['odo_rpe_m']:.3f} / {r['odo_rpe_deg']:.2f} "
             f"| {r['ate_m'] / r['odo_ate_m']:.3f} | {r['scan_accepted']}/{r['scan_tried']} "
-            f"| {r['loops_tried']} / {r['loops_accepted']} / {r['loops_wrong']} | {r['ms_per_scan']:.0f} "
+            f"| {r['loops_tried']} / {r['loops_accepted']} / {r['loops_edges']} / {r['loops_wrong']} | {r['ms_per_scan']:.0f} "
             f"| {r['match_ms']:.1f} |")
     stages = list(rows[0]["stages"])
     lines += ["", "Wall time per scan by stage (ms):", "", "| log | " + " | ".join(stages) + " |",

@@ -23,7 +23,14 @@ Back end. A pose graph over all scans (``gtsam``): odometry edges between consec
 a submap is complete it is matched against every earlier complete submap that shares no scan
 with it and whose anchor lies within ``loop_radius`` plus ``loop_growth`` times the distance
 travelled between the two, from the relative pose of the current estimates; accepted matches
-become edges between the anchors. Every match's edge (scan-to-submap and loop closure) is under
+become edges between the anchors, unless the loop closures already in the graph whose anchors both
+lie within ``NEIGHBOUR_PATH`` metres of travel of the new one's mostly disagree with it: each
+predicts the new relative pose through the current estimates' short chains between the anchors
+(their uncertainty from the odometry model, conservative) and agrees when within 3 sd (pairwise
+consistency, as in PCM). A candidate whose guess lies beyond the matcher's basin can converge
+onto an aliased pose: on aces, guesses 1.6-2.2 m and 6 degrees off in a corridor gave three
+accepted closures 1.2-2 m off that agreed with each other and derailed a run (ATE 0.86 m); with
+the vote 0.23 m, and every other run of bench/SLAM.md unchanged. Every match's edge (scan-to-submap and loop closure) is under
 a Cauchy kernel, against the wrong matches that still get through (a scan turning a corner can
 slide several degrees on the junction's few walls). The graph is optimised (Levenberg-Marquardt)
 each time a submap is complete, and once more at the end; the estimates are replaced.
@@ -60,6 +67,7 @@ SCAN_MIN_WALLS = 20
 MIN_CELLS_PER_RAY = 20           # max_ray_length / resolution, at least
 ODOMETRY_GATE = 16.27            # chi-square, 3 degrees of freedom, 99.9 %
 SCAN_MAX_UNCERTAINTY_M = 0.15
+NEIGHBOUR_PATH = 15.0            # metres of travel: loop closures this close at both ends vote
 
 
 def scan_accepted(result) -> bool:
@@ -87,6 +95,9 @@ class SlamOptions:
         within ``loop_radius + loop_growth * distance travelled between them`` (metres).
     robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
         closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
+    loop_consistency : an accepted loop closure enters the graph only when the loop closures
+        already there near both its anchors do not mostly disagree with it (see the module
+        docstring); False: every accepted one enters.
     matcher : the ``MatchOptions`` of every match.
     """
 
@@ -98,12 +109,15 @@ class SlamOptions:
     loop_radius: float = 3.0
     loop_growth: float = 0.1
     robust_kernel: float = 1.5
+    loop_consistency: bool = True
     matcher: MatchOptions = field(default_factory=MatchOptions)
 
     def __post_init__(self):
         if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)
                 and self.target_refresh >= 1):
             raise InvalidOptionError(f"target_refresh must be an integer >= 1; got {self.target_refresh!r}")
+        if not isinstance(self.loop_consistency, bool):
+            raise InvalidOptionError(f"loop_consistency must be True or False; got {self.loop_consistency!r}")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {self.submap_scans!r}")
         for name in ("resolution", "max_ray_length", "robust_kernel"):
@@ -132,7 +146,8 @@ class SlamResult:
     map : the global map, every scan cast at its optimised pose.
     graph, values : the gtsam factor graph and its optimised values (keys: scan indices).
     scan_matches : (accepted, tried) front-end matches.
-    loops : one dict per loop-closure candidate tried (submaps, anchors, accepted, pose, ...).
+    loops : one dict per loop-closure candidate tried (submaps, anchors, accepted by the verdict,
+        edge: also in the graph, votes: (agree, disagree) of its neighbours, pose, ...).
     scans : one dict per scan after the first (scan, anchor, pose in the anchor's frame, accepted
         by the verdict, edge: also within the odometry gate, covariance; pose and covariance None
         when the scan or its submap has no usable reading and was not matched).
@@ -317,7 +332,8 @@ class Slam:
             if len(submaps[0].scans) >= opts.submap_scans or k == n - 1:
                 finished = submaps.pop(0)
                 t0 = time.perf_counter()
-                new_loops = self._close_loops(log, finished, done, est, travelled, graph, gtsam, usable)
+                new_loops = self._close_loops(log, finished, done, est, travelled, graph, gtsam, usable,
+                                              [lp for lp in loops if lp["edge"]])
                 loops += new_loops
                 done.append(finished)
                 t1 = time.perf_counter()
@@ -340,7 +356,33 @@ class Slam:
                           scan_matches=(accepted, tried), loops=loops, scans=scans, seconds=seconds, options=opts,
                           match_seconds=np.array(match_seconds))
 
-    def _close_loops(self, log, submap, done, est, travelled, graph, gtsam, usable):
+    def _neighbour_votes(self, loop, edges, est, travelled):
+        """(agree, disagree): how many loop closures already in the graph with both anchors within
+        ``NEIGHBOUR_PATH`` metres of travel of this one's predict its relative pose within 3 sd,
+        through the current estimates' short chains between the anchors (their uncertainty from
+        the odometry model: conservative, the estimates are better)."""
+        per_m, _, rad_per_m, floor_m, floor_rad = self.options.odometry_sd
+        a, b = loop["anchors"]
+        z = loop["pose"]
+        t_z, r_z = _sd(loop["covariance"])
+        agree = disagree = 0
+        for other in edges:
+            a2, b2 = other["anchors"]
+            path = abs(travelled[a2] - travelled[a]) + abs(travelled[b2] - travelled[b])
+            if abs(travelled[a2] - travelled[a]) > NEIGHBOUR_PATH or abs(travelled[b2] - travelled[b]) > NEIGHBOUR_PATH:
+                continue
+            predicted = compose(compose(compose(inverse(est[a]), est[a2]), other["pose"]), compose(inverse(est[b2]), est[b]))
+            error = compose(inverse(z), predicted)
+            t_o, r_o = _sd(other["covariance"])
+            sd_r = math.sqrt(r_z**2 + r_o**2 + (rad_per_m * path + floor_rad) ** 2)
+            sd_t = math.sqrt(t_z**2 + t_o**2 + (per_m * path + floor_m) ** 2 + (math.hypot(z[0], z[1]) * sd_r) ** 2)
+            if math.hypot(error[0], error[1]) <= 3.0 * sd_t and abs(wrap_angle(error[2])) <= 3.0 * sd_r:
+                agree += 1
+            else:
+                disagree += 1
+        return agree, disagree
+
+    def _close_loops(self, log, submap, done, est, travelled, graph, gtsam, usable, edges):
         opts = self.options
         out = []
         if not usable[submap.scans].any():
@@ -360,10 +402,22 @@ class Slam:
                     "pose": res.pose, "guess": guess, "covariance": res.calibrated_covariance,
                     "evidence": res.evidence, "status": res.status.name}
             out.append(loop)
-            if res.accepted:
+            loop["edge"] = res.accepted
+            if res.accepted and opts.loop_consistency:
+                agree, disagree = self._neighbour_votes(loop, edges, est, travelled)
+                loop["votes"] = (agree, disagree)
+                loop["edge"] = disagree <= agree
+            if loop["edge"]:
+                edges.append(loop)
                 cov = _tangent_covariance(res.pose, res.calibrated_covariance)
                 graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return out
+
+
+def _sd(covariance):
+    """(largest translation sd, rotation sd) of an (x, y, theta) covariance."""
+    c = np.asarray(covariance, dtype=np.float64)
+    return math.sqrt(max(np.linalg.eigvalsh(c[:2, :2]).max(), 0.0)), math.sqrt(max(c[2, 2], 0.0))
 
 
 def _optimise(gtsam, graph, values):
@@ -453,10 +507,12 @@ def report(result: SlamResult, source: str = "") -> str:
     total = sum(result.seconds.values())
     accepted, tried = result.scan_matches
     loops_ok = sum(loop["accepted"] for loop in result.loops)
+    loops_in = sum(loop["edge"] for loop in result.loops)
     lines = ["# taichi-match slam", "", f"Input: `{source}`" if source else "", "",
              f"- scans: {n}; submaps of {result.options.submap_scans} scans at {result.options.resolution} m",
              f"- scan-to-submap matches accepted: {accepted} of {tried}",
-             f"- loop closures accepted: {loops_ok} of {len(result.loops)} candidates",
+             f"- loop closures accepted: {loops_ok} of {len(result.loops)} candidates; in the graph (consistent with "
+             f"their neighbours): {loops_in}",
              f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", "",
              "| stage | seconds | ms per scan |", "|---|---|---|"]
     lines += [f"| {stage} | {sec:.2f} | {1e3 * sec / n:.1f} |" for stage, sec in result.seconds.items()]

@@ -140,7 +140,8 @@ def test_truncated_log_raises(short_run, tmp_path):
 @pytest.mark.parametrize("field, value", [("submap_scans", 5), ("submap_scans", 2), ("resolution", 0.0),
                                           ("loop_radius", -1.0), ("odometry_sd", (0.1, 0.1)),
                                           ("odometry_sd", (0.1, 0.1, 0.1, 0.0, 0.1)), ("max_ray_length", math.nan),
-                                          ("target_refresh", 0), ("target_refresh", 2.0), ("target_refresh", True)])
+                                          ("target_refresh", 0), ("target_refresh", 2.0), ("target_refresh", True),
+                                          ("loop_consistency", 1)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
@@ -176,6 +177,29 @@ def test_target_is_cast_again_after_target_refresh_scans(short_run, monkeypatch,
     assert len(casts) == expected
     if refresh == 1:
         assert len(casts) == len(matched)
+
+
+def test_loop_closures_vote_on_a_new_one():
+    """A loop closure agrees with the loop closures already in the graph near both its anchors when
+    they predict its relative pose through the estimates' short chains; one slid 2 m along a
+    corridor (the aliasing that derailed aces) does not; one with no neighbours gets no vote."""
+    from taichi_match import compose, inverse
+
+    # out along a corridor 1 m a scan and back 1 m to the side: scan k and 99 - k face each other
+    k = np.arange(100.0)
+    est = np.column_stack([np.where(k < 50, k, 99.0 - k), np.where(k < 50, 0.0, 1.0), np.where(k < 50, 0.0, np.pi)])
+    travelled = k
+    cov = np.diag([0.03**2, 0.03**2, 0.005**2])
+
+    def loop(a, b, offset=(0.0, 0.0, 0.0)):
+        return {"anchors": (a, b), "pose": compose(compose(inverse(est[a]), est[b]), offset), "covariance": cov}
+
+    edges = [loop(10, 89), loop(15, 83)]
+    slam = Slam()
+    assert slam._neighbour_votes(loop(12, 87), edges, est, travelled) == (2, 0)
+    assert slam._neighbour_votes(loop(12, 87, (2.0, 0.0, 0.0)), edges, est, travelled) == (0, 2)
+    assert slam._neighbour_votes(loop(12, 87, (0.0, 0.0, 0.2)), edges, est, travelled) == (0, 2)   # 11.5 degrees
+    assert slam._neighbour_votes(loop(40, 59), edges, est, travelled) == (0, 0)
 
 
 def test_cast_scan_against_geometry():
