@@ -211,7 +211,8 @@ def _slam(args):
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
     print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
-          f"{accepted}/{tried}; loop closures {sum(l['accepted'] for l in result.loops)}/{len(result.loops)}")
+          f"{accepted}/{tried}; loop closures accepted {sum(lp['accepted'] for lp in result.loops)}/"
+          f"{len(result.loops)}, in the graph {sum(lp['edge'] for lp in result.loops)}")
     if reference is not None:
         from taichi_match.evaluation import trajectory_errors
 
@@ -244,7 +245,8 @@ def _demo_slam(args):
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
     print(f"scan-to-submap matches accepted {accepted}/{tried}; loop closures accepted "
-          f"{sum(loop['accepted'] for loop in result.loops)}/{len(result.loops)}")
+          f"{sum(loop['accepted'] for loop in result.loops)}/{len(result.loops)}, in the graph "
+          f"{sum(loop['edge'] for loop in result.loops)}")
     print(f"against the simulated truth: ATE {errors['ate_m']:.3f} m {errors['ate_deg']:.2f} deg, RPE over 10 scans "
           f"{errors['rpe_m']:.3f} m {errors['rpe_deg']:.2f} deg")
     print(f"the odometry alone:          ATE {odometry['ate_m']:.3f} m {odometry['ate_deg']:.2f} deg, RPE over 10 scans "
