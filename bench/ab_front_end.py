@@ -1,0 +1,94 @@
+"""The mapping loop's front-end match, this tree against an older revision, in one process.
+
+Pairs as the front end meets them (a submap of 6 scans cast at their odometry poses, and the next
+scan alone, from the odometry's guess) from four shared logs; each pair matched by the old and
+the new package in turn, on fresh maps (nothing cached), so the machine's load falls on both
+alike. Prints both medians, the median of the per-pair time ratios (new / old), and whether every
+pose and calibrated covariance is bit-identical.
+
+    python bench/ab_front_end.py 7e54b6b            # against that revision (git archive into a temp dir)
+    python bench/ab_front_end.py 7e54b6b --rounds 5
+"""
+
+import argparse
+import glob
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+LOGS = ROOT.parent / "shared" / "logs"
+
+
+def old_package(revision, folder):
+    """The package at ``revision`` importable as ``taichi_match_base`` from ``folder``."""
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", revision, "taichi_match"], check=True,
+                             capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+    (Path(folder) / "taichi_match").rename(Path(folder) / "taichi_match_base")
+    sys.path.insert(0, str(folder))
+    import taichi_match_base
+
+    return taichi_match_base
+
+
+def pairs():
+    from taichi_match import compose, inverse
+    from taichi_match.logs import read_carmen
+    from taichi_match.scans import SensorModel, scans_to_grid
+    from taichi_match.slam import SCAN_MODEL
+
+    out = []
+    for name in ("aces", "csail", "edmonton", "fhw"):
+        log = read_carmen(glob.glob(str(LOGS / name / f"{name}.log*"))[0])
+        odo = log.poses
+        for k0 in range(20, 300, 40):
+            idx = list(range(k0, k0 + 6))
+            origin = inverse(odo[k0])
+            poses = np.array([compose(origin, odo[j]) for j in idx])
+            a = scans_to_grid([log.scans[j] for j in idx], poses, resolution=0.05, model=SensorModel(max_ray_length=20))
+            b = scans_to_grid([log.scans[k0 + 6]], np.zeros((1, 3)), resolution=0.05,
+                              model=replace(SCAN_MODEL, max_ray_length=20))
+            out.append((a, b, compose(origin, odo[k0 + 6])))
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("revision", help="the older revision (git)")
+    parser.add_argument("--rounds", type=int, default=3, help="times over the pairs")
+    args = parser.parse_args()
+    if not LOGS.is_dir():
+        raise SystemExit(f"{LOGS} not found: the laser logs live in ../shared/logs")
+    import taichi_match as new
+
+    with tempfile.TemporaryDirectory() as folder:
+        base = old_package(args.revision, folder)
+        work = pairs()
+        matchers = {"old": (base, base.Matcher()), "new": (new, new.Matcher())}
+        times = {"old": [], "new": []}
+        same = True
+        for _ in range(args.rounds):
+            for a, b, guess in work:
+                results = {}
+                for key, (package, matcher) in matchers.items():
+                    fresh_a = package.GridMap(a.prob.copy(), a.resolution, a.corner_pose)
+                    fresh_b = package.GridMap(b.prob.copy(), b.resolution, b.corner_pose)
+                    started = time.perf_counter()
+                    results[key] = matcher.match(fresh_a, fresh_b, guess)
+                    times[key].append(time.perf_counter() - started)
+                same &= bool(np.array_equal(results["old"].pose, results["new"].pose) and np.array_equal(
+                    results["old"].calibrated_covariance, results["new"].calibrated_covariance))
+    old, now = np.array(times["old"]), np.array(times["new"])
+    print(f"{len(work)} pairs x {args.rounds}: {args.revision} median {1e3 * np.median(old):.2f} ms, this tree "
+          f"{1e3 * np.median(now):.2f} ms, median ratio {np.median(now / old):.3f}; poses and covariances "
+          f"bit-identical: {same}")
+
+
+if __name__ == "__main__":
+    main()
