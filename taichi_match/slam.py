@@ -149,7 +149,8 @@ class SlamResult:
     graph, values : the gtsam factor graph and its optimised values (keys: scan indices).
     scan_matches : (accepted, tried) front-end matches.
     loops : one dict per loop-closure candidate tried (submaps, anchors, accepted by the verdict,
-        edge: also in the graph, votes: (agree, disagree) of its neighbours, pose, ...).
+        edge: also in the graph, votes: (agree, disagree) of its neighbours when they were asked,
+        pose, ...).
     scans : one dict per scan after the first (scan, anchor, pose in the anchor's frame, accepted
         by the verdict, edge: also within the odometry gate, covariance; pose and covariance None
         when the scan or its submap has no usable reading and was not matched).
