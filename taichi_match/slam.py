@@ -30,9 +30,9 @@ predicts the new relative pose through the current estimates' short chains betwe
 consistency, as in PCM). A candidate whose guess lies beyond the matcher's basin can converge
 onto an aliased pose: on aces, guesses 1.6-2.2 m and 6 degrees off in a corridor gave three
 accepted closures 1.2-2 m off that agreed with each other and derailed a run (ATE 0.86 m); with
-the vote 0.23 m, and every other run of bench/SLAM.md unchanged. Every match's edge (scan-to-submap and loop closure) is under
-a Cauchy kernel, against the wrong matches that still get through (a scan turning a corner can
-slide several degrees on the junction's few walls). The graph is optimised (Levenberg-Marquardt)
+the vote 0.23 m, and every other run of bench/SLAM.md unchanged. Every match's edge
+(scan-to-submap and loop closure) is under a Cauchy kernel, against the wrong matches that still
+get through (a scan turning a corner can slide several degrees on the junction's few walls). The graph is optimised (Levenberg-Marquardt)
 each time a submap is complete, and once more at the end; the estimates are replaced.
 
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
@@ -371,9 +371,10 @@ class Slam:
         agree = disagree = 0
         for other in edges:
             a2, b2 = other["anchors"]
-            path = abs(travelled[a2] - travelled[a]) + abs(travelled[b2] - travelled[b])
-            if abs(travelled[a2] - travelled[a]) > NEIGHBOUR_PATH or abs(travelled[b2] - travelled[b]) > NEIGHBOUR_PATH:
+            along_a, along_b = abs(travelled[a2] - travelled[a]), abs(travelled[b2] - travelled[b])
+            if max(along_a, along_b) > NEIGHBOUR_PATH:
                 continue
+            path = along_a + along_b
             predicted = compose(compose(compose(inverse(est[a]), est[a2]), other["pose"]), compose(inverse(est[b2]), est[b]))
             error = compose(inverse(z), predicted)
             t_o, r_o = _sd(other["covariance"])
