@@ -32,8 +32,9 @@ onto an aliased pose: on aces, guesses 1.6-2.2 m and 6 degrees off in a corridor
 accepted closures 1.2-2 m off that agreed with each other and derailed a run (ATE 0.86 m); with
 the vote 0.23 m, and every other run of bench/SLAM.md unchanged. Every match's edge
 (scan-to-submap and loop closure) is under a Cauchy kernel, against the wrong matches that still
-get through (a scan turning a corner can slide several degrees on the junction's few walls). The graph is optimised (Levenberg-Marquardt)
-each time a submap is complete, and once more at the end; the estimates are replaced.
+get through (a scan turning a corner can slide several degrees on the junction's few walls). The
+graph is optimised (Levenberg-Marquardt) each time a submap is complete, and once more at the
+end; the estimates are replaced.
 
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
 poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
