@@ -40,7 +40,7 @@ from ._distance import wall_distance
 from ._errors import InvalidOptionError
 from ._grid import GridMap
 
-__all__ = ["blur", "wall_transform", "BLUR_KINDS"]
+__all__ = ["blur", "blur_everywhere", "wall_transform", "BLUR_KINDS"]
 
 BLUR_KINDS = ("gaussian", "ramp", "envelope")
 
@@ -98,13 +98,26 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "enve
          occupied: float = 0.5, transform=None) -> GridMap:
     """Return ``grid`` blurred with ``width`` metres (see the module docstring); unknown stays NaN.
     ``transform``: ``wall_transform(grid, occupied)`` when the caller has it already."""
+    out = blur_everywhere(grid, width, kind=kind, occupied=occupied, transform=transform)
+    if out is grid.prob:
+        return grid
+    out[np.isnan(grid.prob)] = np.nan
+    return grid._with_trusted(out)
+
+
+def blur_everywhere(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "envelope"] = "gaussian",
+                    occupied: float = 0.5, transform=None) -> np.ndarray:
+    """``blur``'s values on unknown cells too (a new array; ``grid.prob`` itself when the blur
+    changes nothing): the "ramp" and "envelope" blurs reach unknown cells from the walls (the
+    envelope discrepancy charges a wall there by its distance from the other map's walls); the
+    Gaussian's normalised convolution is 0 where no known cell is near."""
     width = float(width)
     if not np.isfinite(width) or width < 0.0:
         raise InvalidOptionError(f"blur width must be a finite number of metres >= 0; got {width}")
     if kind not in BLUR_KINDS:
         raise InvalidOptionError(f"blur kind must be one of {BLUR_KINDS}; got {kind!r}")
     if width == 0.0:
-        return grid
+        return grid.prob
     prob = grid.prob
     unknown = np.isnan(prob)
     if kind == "gaussian":
@@ -114,7 +127,7 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "enve
     else:
         transform = transform if transform is not None else wall_transform(grid, occupied)
         if transform is None:
-            return grid
+            return prob
         dist, nearest = transform
         d = dist * (grid.resolution / width)
         if kind == "ramp":
@@ -127,5 +140,4 @@ def blur(grid: GridMap, width: float, *, kind: Literal["gaussian", "ramp", "enve
             out = np.fmax(prob, profile, out=profile)
         else:
             out = np.fmax(prob, prob[nearest[0], nearest[1]] * profile, out=profile)
-    out[unknown] = np.nan
-    return grid._with_trusted(out)
+    return out

@@ -13,11 +13,18 @@ unknown cells not compared, and counts only the occupied cells, each against the
   occupied cells (``_blur``, kind "envelope": 1 on a wall, ``exp(-d^2 / 2 sigma^2)`` at distance
   d from the nearest one). A wall landing on the other map's wall costs 0, on its free space far
   from any wall 1, and in between a smooth bowl of width sigma.
-- On an unknown cell of the other map a wall costs ``unknown_cost`` (0: not compared, as in the
-  paper; > 0: a wall the other map cannot explain pays a little, so pushing a map into the other
-  map's unknown area is no longer free). Off the other map's grid it costs nothing: a grid's
-  edge is often only where a map was cropped (the paper's corridor), and charging for it would
-  turn the crop into structure (a corridor would lose its degenerate direction).
+- On an unknown cell of the other map a wall costs ``min(unknown_cost, 1 - hi_M(x))``, the
+  envelope reaching into unknown cells too (0: not compared, as in the paper; > 0: a wall the
+  other map cannot explain pays a little, so pushing a map into the other map's unknown area is
+  no longer free). Behind a wall a laser sees nothing: a wall of the other map landing there, next
+  to this map's wall, is explained by it and pays its distance, as it would in front. Charged
+  the full ``unknown_cost`` there, a thick wall paid more behind a thin one than in front of it,
+  and a lone scan matched against a submap came out 1-2 cm ahead of the truth on average
+  (simulated run, seattle, csail: a forward bias of 7-16 mm, 4-10 mm since; median errors
+  15 -> 10 mm and 0.19 -> 0.14 degree on the simulated run). Off the other map's grid it costs
+  nothing: a grid's edge is often only where a map was cropped (the paper's corridor), and
+  charging for it would turn the crop into structure (a corridor would lose its degenerate
+  direction).
 - ``w`` is the cell's occupancy (1 on trinary maps; grey on coarse pyramid levels).
 
 Both sums visit occupied cells only (5-15 % of the known cells of a building map), so one
@@ -28,7 +35,8 @@ known cells of the other map is the overlap.
 The kernel: for a batch of N poses, per (pose, chunk of ``CHUNK`` points) one partial sum, no
 atomics (bit-identical run after run); A's points go through the inverse poses' affine maps;
 small batches run on one thread (``SERIAL_BELOW``). Grids are float32 padded with ``PAD`` cells
-off the map (-2), unknown = -1; points are a (4, M) float32 array of columns
+off the map (-4), ``1 - hi`` on known cells and ``-1 - (1 - hi)`` on unknown ones (in [-2, -1]);
+points are a (4, M) float32 array of columns
 ``(row, col, w, w * unknown_cost)``, cell indices in their own grid (laid out by component:
 measured 3.5x faster than (M, 4) rows, whose loads do not vectorise).
 """
@@ -48,18 +56,19 @@ CHUNK = 256
 # 24k lookups 11-18 us serial against 16-24 us in parallel, even at 96k; at 190k parallel wins).
 # The sums are the same either way (one per chunk, each summed in order).
 SERIAL_BELOW = 100_000
-_UNKNOWN = np.float32(-1.0)
-_OFF_MAP = np.float32(-2.0)
+_OFF_MAP = np.float32(-4.0)
 _KERNEL = {}
 
 
-def conflict_grid(upper: GridMap) -> np.ndarray:
-    """``1 - hi`` as the padded float32 lookup grid (unknown -1, the ring off the map -2)."""
-    p = upper.prob
-    out = np.full((p.shape[0] + 2 * PAD, p.shape[1] + 2 * PAD), _OFF_MAP, dtype=np.float32)
-    inner = out[PAD:PAD + p.shape[0], PAD:PAD + p.shape[1]]
-    np.subtract(1.0, p, out=inner, casting="unsafe")          # in float64, rounded to float32 once
-    inner[np.isnan(p)] = _UNKNOWN
+def conflict_grid(hi: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    """The padded float32 lookup grid: ``1 - hi`` on known cells, ``-1 - (1 - hi)`` (in [-2, -1])
+    on ``unknown`` ones, -4 on the ring off the map. ``hi`` is the envelope on every cell (NaN,
+    where no wall reaches, counts as 0)."""
+    out = np.full((hi.shape[0] + 2 * PAD, hi.shape[1] + 2 * PAD), _OFF_MAP, dtype=np.float32)
+    inner = out[PAD:PAD + hi.shape[0], PAD:PAD + hi.shape[1]]
+    np.subtract(1.0, hi, out=inner, casting="unsafe")          # in float64, rounded to float32 once
+    inner[np.isnan(hi)] = 1.0
+    inner[unknown] = -1.0 - inner[unknown]
     return out
 
 
@@ -95,7 +104,9 @@ def _build(ti):
             iv = ti.min(ti.max(ti.cast(c3 * j + c4 * i + c5, ti.i32), 0), v_max)
             v = grid[iv, iu]
             known = v >= 0.0
-            acc += ti.select(known, points[2, m] * v, points[3, m] * (v + 2.0))    # unknown 1, off 0
+            # unknown: w * min(unknown_cost, 1 - hi) (v = -1 - (1 - hi)); off the map (v = -4): 0
+            near = ti.min(points[3, m], points[2, m] * (-1.0 - v))
+            acc += ti.select(known, points[2, m] * v, ti.select(v > -3.0, near, 0.0))
             cnt += ti.select(known, 1, 0)
         return acc, cnt
 
@@ -174,13 +185,14 @@ def _finite(affine):
 
 
 class NumpyEnvelope:
-    """The envelope discrepancy in plain NumPy from the maps and their envelopes (the oracle)."""
+    """The envelope discrepancy in plain NumPy from the maps alone (the oracle): each map's
+    envelope from SciPy's distance transform, every wall looked up in the other map's cell."""
 
-    def __init__(self, a: GridMap, a_upper: GridMap, b: GridMap, b_upper: GridMap, unknown_cost=0.0):
+    def __init__(self, a: GridMap, b: GridMap, width_a: float, width_b: float, unknown_cost=0.0):
         self._sides = []
-        for src, dst, dst_upper, forward in ((b, a, a_upper, True), (a, b, b_upper, False)):
+        for src, dst, width, forward in ((b, a, width_a, True), (a, b, width_b, False)):
             rows, cols, w = wall_points(src)
-            self._sides.append((src.cell_centres(rows, cols), w, dst, dst_upper, forward))
+            self._sides.append((src.cell_centres(rows, cols), w, dst, _envelope_everywhere(dst, width), forward))
         self._unknown_cost = unknown_cost
 
     def __call__(self, poses, count="all"):
@@ -189,13 +201,26 @@ class NumpyEnvelope:
         values = np.zeros(len(poses))
         counts = np.zeros(len(poses), dtype=np.int64)
         for k, pose in enumerate(poses):
-            for centres, w, dst, dst_upper, forward in self._sides:
+            for centres, w, dst, hi_dst, forward in self._sides:
                 rows, cols = dst.cell_of(transform_points(pose if forward else inverse(pose), centres))
                 inside = (rows >= 0) & (rows < dst.shape[0]) & (cols >= 0) & (cols < dst.shape[1])
-                hi = np.full(len(w), np.nan)
-                hi[inside] = dst_upper.prob[rows[inside].astype(np.intp), cols[inside].astype(np.intp)]
-                known = ~np.isnan(hi)
-                unknown = inside & ~known
-                values[k] += np.sum(w[known] * (1.0 - hi[known])) + self._unknown_cost * np.sum(w[unknown])
+                r, c = rows[inside].astype(np.intp), cols[inside].astype(np.intp)
+                hi = hi_dst[r, c]
+                known = ~np.isnan(dst.prob[r, c])
+                cost = np.where(known, 1.0 - hi, np.minimum(self._unknown_cost, 1.0 - hi))
+                values[k] += np.sum(w[inside] * cost)
                 counts[k] += int(known.sum())
         return values, counts
+
+
+def _envelope_everywhere(grid: GridMap, width: float) -> np.ndarray:
+    """hi on every cell, unknown ones too: max(p, p(o) exp(-d^2 / 2 width^2)) with o the nearest
+    cell with p >= 0.5 at distance d (SciPy's exact transform); p of an unknown cell counts 0."""
+    from scipy import ndimage
+
+    p = np.nan_to_num(grid.prob, nan=0.0)
+    walls = p >= 0.5
+    if not walls.any() or width == 0.0:
+        return p
+    d, (i, j) = ndimage.distance_transform_edt(~walls, return_indices=True)
+    return np.maximum(p, p[i, j] * np.exp(-0.5 * (d * grid.resolution / width) ** 2))

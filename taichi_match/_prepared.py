@@ -12,7 +12,7 @@ import weakref
 
 import numpy as np
 
-from ._blur import blur, wall_transform
+from ._blur import blur, blur_everywhere, wall_transform
 from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
 from ._grid import GridMap, trinary
@@ -55,16 +55,22 @@ class PreparedMap:
         # the walls' distance transform, once for the blur and the verdict
         transform = wall_transform(grid) if blur_kind in ("ramp", "envelope") and blur_width > 0 else None
         self._wall_distances = transform[0] if transform is not None else None
-        blurred = blur(grid, blur_width, kind=blur_kind, transform=transform)
+        if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
+            hi = blur_everywhere(grid, blur_width, kind=blur_kind, transform=transform)
+            unknown = np.isnan(grid.prob)
+            self.conflict = conflict_grid(hi, unknown)
+            self.walls = wall_points(grid)
+            if hi is not grid.prob:
+                hi[unknown] = np.nan
+            blurred = grid if hi is grid.prob else grid._with_trusted(hi)
+        else:
+            blurred = blur(grid, blur_width, kind=blur_kind, transform=transform)
         self.blurred = blurred if blurred is not grid else grid._with_trusted(grid.prob)   # "envelope": hi
         # the map as compared: blurred for the paper's |p_A - p_B| (``_kernels``); for "envelope" the
         # map itself (a GridMap of its own over the same read-only array: a strong reference to the
         # caller's map would keep it in the matcher's weak-keyed cache forever), on which the dense
         # kernel only counts the overlap
         self.lower = grid._with_trusted(grid.prob) if blur_kind == "envelope" else self.blurred
-        if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
-            self.conflict = conflict_grid(self.blurred)
-            self.walls = wall_points(grid)
         self.n_known = int(grid.known.sum())
         # padded, values, rows, radius, centroid and spread are made when first asked for: the
         # envelope's coarser levels seldom need the first three and never the last three
@@ -203,7 +209,7 @@ class EnvelopeDiscrepancy:
         if name == "taichi":
             self._evaluate = EnvelopeEngine(a, b, unknown_cost)
         else:
-            self._evaluate = NumpyEnvelope(a.lower, a.blurred, b.lower, b.blurred, unknown_cost)
+            self._evaluate = NumpyEnvelope(a.lower, b.lower, a.blur_width, b.blur_width, unknown_cost)
         self._maps = (a, b)
         self._dense_engine = None
         self.dense_launches = 0          # overlap counts that count="any" could not spare

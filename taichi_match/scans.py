@@ -5,7 +5,13 @@ The hit/miss model (an inverse sensor model in log-odds, as in Thrun, Burgard & 
 - Each beam is a segment from the laser's position to its endpoint, in the grid's frame. A beam
   with a return (``min_range < r < max_range``) adds ``hit`` to the log-odds of the cell holding
   its endpoint and ``miss`` to every other cell the segment passes through (the exact cell
-  traversal of the segment, each cell once per beam).
+  traversal of the segment, each cell once per beam), except the cells where a beam of the same
+  scan ends with a return: a scan's hits go in before its misses, as Cartographer inserts a scan.
+  Otherwise the beam next to a grazing return clears the return's cell: 15-25 % of a lone scan's
+  returns were left unknown (p = 0.5) on the shared logs. Each scan matched against the 10 scans
+  before it (both cast at the reference poses), median error with the rule against without: 9.2
+  mm / 0.105 deg against 10.4 / 0.141 on the simulated run, 21.9 mm / 0.21 deg against 24.7 /
+  0.24 on seattle, 25.5 mm / 0.29 deg against 24.8 / 0.27 on csail.
 - A return farther than ``max_ray_length`` is cut there and counts as free up to the cut (no hit).
 - A beam with no return (``r >= max_range``, the sensor's saturation value) counts as free up to
   ``no_return_length`` metres (0: ignored): nothing was hit that close.
@@ -67,13 +73,14 @@ class SensorModel:
 def beam_segments(scans, poses, model: SensorModel = SensorModel()):
     """The segments the beams of ``scans`` cast, laser at ``poses`` (S, 3) in the grid's frame.
 
-    Returns (starts (R, 2), ends (R, 2), hit (R,) bool): one row per usable beam, in scan order.
+    Returns (starts (R, 2), ends (R, 2), hit (R,) bool, scan (R,) int): one row per usable beam,
+    in scan order, ``scan`` the index of its scan in ``scans``.
     """
     poses = as_poses(poses, "poses")
     if len(poses) != len(scans):
         raise InvalidPoseError(f"{len(scans)} scans but {len(poses)} poses")
-    starts, ends, hits = [], [], []
-    for scan, (x, y, theta) in zip(scans, poses):
+    starts, ends, hits, owners = [], [], [], []
+    for index, (scan, (x, y, theta)) in enumerate(zip(scans, poses)):
         r = np.asarray(scan.ranges, dtype=np.float64)
         a = np.asarray(scan.angles, dtype=np.float64)
         with np.errstate(invalid="ignore"):
@@ -87,9 +94,10 @@ def beam_segments(scans, poses, model: SensorModel = SensorModel()):
         ends.append(np.column_stack([x + d * np.cos(angle), y + d * np.sin(angle)]))
         starts.append(np.broadcast_to([x, y], (int(keep.sum()), 2)))
         hits.append(hit[keep])
+        owners.append(np.full(int(keep.sum()), index, dtype=np.int64))
     if not starts:
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=bool)
-    return np.vstack(starts), np.vstack(ends), np.concatenate(hits)
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int64)
+    return np.vstack(starts), np.vstack(ends), np.concatenate(hits), np.concatenate(owners)
 
 
 def _cells_of_segment(u0, v0, u1, v1):
@@ -120,10 +128,13 @@ def _cells_of_segment(u0, v0, u1, v1):
     return rows, cols
 
 
-def count_traversals(starts, ends, hit, origin, resolution, shape, engine: Literal["taichi", "numpy"] = "taichi"):
+def count_traversals(starts, ends, hit, origin, resolution, shape, engine: Literal["taichi", "numpy"] = "taichi",
+                     scan=None):
     """(hits, misses) int32 arrays of ``shape``: per cell, the beams ending in it with a return and
     the beams passing through it otherwise (see the module docstring). Segments in metres in the
-    grid's frame; the grid's cell (0, 0) has its outer corner at ``origin``."""
+    grid's frame; the grid's cell (0, 0) has its outer corner at ``origin``. ``scan`` (R,)
+    non-decreasing: each beam's scan (a beam does not miss where its own scan's beams end with a
+    return); None: each beam a scan of its own."""
     u0 = (starts[:, 0] - origin[0]) / resolution
     v0 = (starts[:, 1] - origin[1]) / resolution
     u1 = (ends[:, 0] - origin[0]) / resolution
@@ -131,11 +142,17 @@ def count_traversals(starts, ends, hit, origin, resolution, shape, engine: Liter
     if engine == "taichi":
         from ._raycast import count_traversals_taichi
 
-        return count_traversals_taichi(np.column_stack([u0, v0, u1, v1]), np.asarray(hit, dtype=np.int32), shape)
+        return count_traversals_taichi(np.column_stack([u0, v0, u1, v1]), np.asarray(hit, dtype=np.int32), shape,
+                                       scan)
     if engine != "numpy":
         raise InvalidOptionError(f"engine must be 'taichi' or 'numpy'; got {engine!r}")
     hits = np.zeros(shape, dtype=np.int32)
     misses = np.zeros(shape, dtype=np.int32)
+    own = {}                                    # scan -> the cells its beams end in with a return
+    for k in range(len(u0)):
+        row, col = int(np.floor(v1[k])), int(np.floor(u1[k]))
+        if hit[k] and scan is not None and 0 <= row < shape[0] and 0 <= col < shape[1]:
+            own.setdefault(scan[k], set()).add(row * shape[1] + col)
     for k in range(len(u0)):
         rows, cols = _cells_of_segment(u0[k], v0[k], u1[k], v1[k])
         if hit[k]:
@@ -147,6 +164,8 @@ def count_traversals(starts, ends, hit, origin, resolution, shape, engine: Liter
         inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])    # as the kernel: skip
         rows, cols = rows[inside], cols[inside]
         cells = np.unique(rows * shape[1] + cols)
+        if scan is not None and scan[k] in own:
+            cells = cells[~np.isin(cells, list(own[scan[k]]))]
         np.add.at(misses.reshape(-1), cells, 1)
     return hits, misses
 
@@ -170,7 +189,7 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
     """
     if not np.isfinite(resolution) or resolution <= 0.0:
         raise InvalidOptionError(f"resolution must be finite and > 0; got {resolution!r}")
-    starts, ends, hit = beam_segments(scans, poses, model)
+    starts, ends, hit, scan = beam_segments(scans, poses, model)
     if len(starts) == 0:
         raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
     points = np.vstack([starts, ends])
@@ -180,7 +199,7 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
     if rows * cols > MAX_GRID_CELLS:
         raise InvalidOptionError(f"the beams span {cols} x {rows} cells at {resolution} m, more than {MAX_GRID_CELLS}: "
                                  f"a coarser resolution, shorter rays (SensorModel.max_ray_length) or fewer scans")
-    hits, misses = count_traversals(starts, ends, hit, lo, resolution, (rows, cols), engine)
+    hits, misses = count_traversals(starts, ends, hit, lo, resolution, (rows, cols), engine, scan)
     # 1 / (1 + exp(-clip(hit * hits + miss * misses))), in place (fresh canvases cost page faults)
     prob = model.hit * hits
     prob += model.miss * misses

@@ -81,7 +81,7 @@ def test_kernel_equals_numpy_oracle(case, unknown_cost, rng):
     v_np, n_np = make_engine("numpy", pa, pb, unknown_cost)(poses)
     # the envelope kernel's own count: walls landing on known cells of the other map
     w_ti = EnvelopeEngine(pa, pb, unknown_cost)(poses)[1]
-    w_np = NumpyEnvelope(a, pa.blurred, b, pb.blurred, unknown_cost)(poses)[1]
+    w_np = NumpyEnvelope(a, b, 0.1, 0.1, unknown_cost)(poses)[1]
 
     wall_ties = np.array([boundary_ties(a, b, p, walls_of(b)) + boundary_ties(b, a, inverse(p), walls_of(a))
                           for p in poses])
@@ -200,7 +200,7 @@ def test_hand_computed_values_on_one_row_maps():
         values, _ = make_engine(name, pa, pb, u)(poses)
         np.testing.assert_allclose(values, expected, rtol=1e-6, atol=1e-7, err_msg=name)
     assert EnvelopeEngine(pa, pb, u)(poses)[1].tolist() == expected_walls
-    assert NumpyEnvelope(a, pa.blurred, b, pb.blurred, u)(poses)[1].tolist() == expected_walls
+    assert NumpyEnvelope(a, b, 0.1, 0.1, u)(poses)[1].tolist() == expected_walls
     # the overlap make_engine reports is eq. (6)'s: known cells of B on known cells of A
     assert make_engine("taichi", pa, pb, u)([(0, 0, 0), (3, 0, 0), (-1, 0, 0)])[1].tolist() == [2, 1, 1]
     # unknown_cost 0: unknown cells are not compared, as in the paper
@@ -469,3 +469,19 @@ def test_the_same_match_twice_gives_bit_identical_poses(room_pair):
     engine = make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope"), 0.3)
     poses = np.array(TRUTH) + np.random.default_rng(1).normal(scale=0.1, size=(50, 3))
     assert engine(poses)[0].tobytes() == engine(poses)[0].tobytes()
+
+
+def test_a_wall_on_unknown_cells_next_to_a_wall_pays_its_distance():
+    # what a laser cannot see behind a wall is unknown: a wall there, within the envelope of the
+    # other map's wall, is explained by it and pays min(unknown_cost, 1 - hi), not the full
+    # unknown_cost (resolution 1 m, blur 1 m: 1 - hi = 1 - exp(-d^2 / 2) at d cells)
+    a = GridMap(np.array([[0.0, 0.0, 1.0, np.nan, np.nan, np.nan]]), 1.0)      # wall centre (2.5, 0.5)
+    b = GridMap(np.array([[1.0]]), 1.0)                                        # wall centre (0.5, 0.5)
+    pa, pb = PreparedMap(a, 1.0, "envelope"), PreparedMap(b, 1.0, "envelope")
+    bowl = lambda d: 1.0 - np.exp(-0.5 * d * d)       # noqa: E731
+    u = 0.5
+    poses = [(2, 0, 0), (1, 0, 0), (3, 0, 0), (4, 0, 0), (0, 0, 0), (6, 0, 0)]
+    expected = [0.0, bowl(1), bowl(1), u, bowl(2), 0.0]      # on, before, just behind, far behind, free, off
+    assert bowl(1) < u < bowl(2)
+    for name in ("taichi", "numpy"):
+        np.testing.assert_allclose(make_engine(name, pa, pb, u)(poses)[0], expected, rtol=1e-6, atol=1e-7, err_msg=name)

@@ -174,6 +174,43 @@ def test_taichi_traversal_equals_the_reference_on_rays_through_grid_corners():
     np.testing.assert_array_equal(got[1], want[1])
 
 
+@pytest.mark.parametrize("engine", ["numpy", "taichi"])
+def test_a_beam_does_not_clear_a_return_of_its_own_scan(engine):
+    # a grazing pair on a 1-cell grid row: beam 0 ends in cell (0, 2); beam 1 passes through it
+    # to end in (0, 4). In one scan the return's cell stays a pure hit; in two scans (or with
+    # no scans given) beam 1 clears it once
+    segments = np.array([[0.5, 0.5, 2.5, 0.5], [0.5, 0.5, 4.5, 0.5]])
+    hit = np.array([True, True])
+    for scan, missed in (([0, 0], 0), ([0, 1], 1), (None, 1)):
+        hits, misses = count_traversals(segments[:, :2], segments[:, 2:], hit, (0.0, 0.0), 1.0, (1, 6), engine,
+                                        None if scan is None else np.array(scan))
+        assert hits[0].tolist() == [0, 0, 1, 0, 1, 0]
+        assert misses[0].tolist() == [2, 2, missed, 1, 0, 0], scan
+    # a beam without a return spares its scan's returns too, and misses its own endpoint's cell
+    hits, misses = count_traversals(segments[:, :2], segments[:, 2:], np.array([True, False]), (0.0, 0.0), 1.0,
+                                    (1, 6), engine, np.array([0, 0]))
+    assert misses[0].tolist() == [2, 2, 0, 1, 1, 0]
+
+
+def test_taichi_own_scan_rule_equals_the_reference():
+    # 40 scans of 60 beams from nearby origins: many beams cross the returns of their own scan
+    rng = np.random.default_rng(11)
+    scans, beams = 40, 60
+    origin = np.repeat(rng.uniform(20.0, 40.0, (scans, 2)), beams, axis=0)
+    angle = rng.uniform(-np.pi, np.pi, scans * beams)
+    end = origin + rng.uniform(1.0, 18.0, scans * beams)[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    hit = rng.random(scans * beams) < 0.8
+    scan = np.repeat(np.arange(scans), beams)
+    want = count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "numpy", scan)
+    got = count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "taichi", scan)
+    plain = count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "taichi")
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    assert np.array_equal(got[0], plain[0]) and plain[1].sum() > got[1].sum()    # the rule did skip misses
+    with pytest.raises(InvalidOptionError, match="non-decreasing"):
+        count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "taichi", scan[::-1])
+
+
 def test_taichi_skips_cells_outside_the_grid():
     # segments leaving, crossing, or missing an 12 x 16 grid: the counts are those of the
     # reference on a grid 40 cells larger on each side, cut back to the grid

@@ -146,7 +146,7 @@ def test_a_map_with_no_known_cells_of_the_other_in_reach_is_refused(room_pair):
 
 
 @pytest.mark.parametrize("options", [dict(max_iterations=0), dict(max_iterations=0, levels=1),
-                                     dict(max_iterations=1)])
+                                     dict(max_iterations=1, xtol=0.01)])
 def test_results_that_did_not_converge_are_refused(room_pair, options):
     a, b = room_pair
     guess = np.array(TRUTH) + np.array([0.15, 0.1, 0.05])
@@ -154,9 +154,10 @@ def test_results_that_did_not_converge_are_refused(room_pair, options):
     assert not res.converged and res.status == tm.Status.MAX_ITERATIONS
     assert not res.accepted and res.evidence.accepts(False) is False
     assert res.evidence.accepts(True) == accepted_by_thresholds(res.evidence)
-    if options == dict(max_iterations=1):
-        # one Newton step reaches the truth, and what the maps say there passes: only the
-        # missing convergence refuses the result
+    if options == dict(max_iterations=1, xtol=0.01):
+        # one Newton step on the coarsest level cannot meet its tolerance, the finer levels reach
+        # the truth, and what the maps say there passes: only the missing convergence refuses the
+        # result
         metres, degrees = pose_error(res.pose)
         assert metres <= 2 * RES and degrees <= 0.5
         assert res.evidence.wall_agreement >= 0.95 and res.evidence.accepts(True), res.evidence
