@@ -16,7 +16,10 @@ import numpy as np
 
 from ._kernels import _STATE, ensure_initialized, kernel_lock
 
-__all__ = ["squared_distance", "wall_distance"]
+__all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "FAR"]
+
+# near_squared_distance's value where no wall is within reach
+FAR = np.iinfo(np.int32).max
 
 _KERNELS = {}
 
@@ -60,7 +63,40 @@ def _build(ti):
                     dq = ti.cast(q - p, ti.f64)
                     d[line, q] = dq * dq + f[line, p]
 
-    return rows
+    @ti.kernel
+    def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
+              reach: ti.i32, d2: i32_2d):
+        # each wall writes its squared distance into the disc of radius reach around it; the least
+        # wins (an integer minimum: the same whatever the order)
+        h, w = d2.shape[0], d2.shape[1]
+        for k, di in ti.ndrange(rows_.shape[0], 2 * reach + 1):
+            i = rows_[k] + di - reach
+            if 0 <= i < h:
+                dy2 = (di - reach) * (di - reach)
+                for dj in range(-reach, reach + 1):
+                    j = cols_[k] + dj
+                    q = dy2 + dj * dj
+                    if 0 <= j < w and q <= reach * reach:
+                        ti.atomic_min(d2[i, j], q)
+
+    @ti.kernel
+    def stamp_weighted(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                       weights: ti.types.ndarray(dtype=ti.f64, ndim=1), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                       reach: ti.i32, out: f64_2d):
+        # each wall writes weight * profile[squared distance] into the disc around it; the largest
+        # wins (a maximum: the same whatever the order)
+        h, w = out.shape[0], out.shape[1]
+        for k, di in ti.ndrange(rows_.shape[0], 2 * reach + 1):
+            i = rows_[k] + di - reach
+            if 0 <= i < h:
+                dy2 = (di - reach) * (di - reach)
+                for dj in range(-reach, reach + 1):
+                    j = cols_[k] + dj
+                    q = dy2 + dj * dj
+                    if 0 <= j < w and q <= reach * reach:
+                        ti.atomic_max(out[i, j], weights[k] * profile[q])
+
+    return rows, stamp, stamp_weighted
 
 
 class _Scratch:
@@ -98,7 +134,7 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
         ensure_initialized()
         if "kernels" not in _KERNELS:
             _KERNELS["kernels"] = _build(_STATE["ti"])
-        rows = _KERNELS["kernels"]
+        rows = _KERNELS["kernels"][0]
         # down the columns as rows of the transpose: both passes read memory in order
         f_t = _SCRATCH.get("f_t", (w, h), np.float64)
         f_t[...] = f.T
@@ -108,6 +144,49 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
         g[...] = g_t.T
         rows(g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64))
     return d
+
+
+def near_squared_distance(rows, cols, shape, reach: int) -> np.ndarray:
+    """The squared Euclidean distance, in cells, from every cell of a grid of ``shape`` to the
+    nearest of the walls at (``rows``, ``cols``), where it is at most ``reach`` cells; ``FAR``
+    elsewhere. int32, exact (``squared_distance``'s value within reach). Each wall stamps the disc
+    of radius ``reach`` around it: for the few walls of a laser-built map (0.1-2 % of its cells)
+    and a short reach, a fraction of the exact transform's time (which visits every cell twice
+    and keeps a lower envelope of parabolas per line)."""
+    rows = np.ascontiguousarray(rows, dtype=np.int32)
+    cols = np.ascontiguousarray(cols, dtype=np.int32)
+    reach = int(reach)
+    if rows.shape != cols.shape or rows.ndim != 1 or not 0 <= reach <= 2**14:
+        raise ValueError(f"rows and cols must be 1-D of one length and 0 <= reach <= 16384; got {rows.shape}, "
+                         f"{cols.shape}, {reach}")
+    d2 = np.full(tuple(int(n) for n in shape), FAR, dtype=np.int32)
+    if len(rows) == 0 or d2.size == 0:
+        return d2
+    with kernel_lock():
+        ensure_initialized()
+        if "kernels" not in _KERNELS:
+            _KERNELS["kernels"] = _build(_STATE["ti"])
+        _KERNELS["kernels"][1](rows, cols, reach, d2)
+    return d2
+
+
+def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.ndarray) -> np.ndarray:
+    """max over the walls at (``rows``, ``cols``) within ``reach`` cells of ``weights[k] *
+    profile[squared distance]`` per cell of a grid of ``shape`` (0 where none is within reach):
+    the upper envelope of grey walls, each wall stamping its disc (float64; ``profile`` has
+    reach**2 + 1 entries)."""
+    rows = np.ascontiguousarray(rows, dtype=np.int32)
+    cols = np.ascontiguousarray(cols, dtype=np.int32)
+    out = np.zeros(tuple(int(n) for n in shape))
+    if len(rows) == 0 or out.size == 0:
+        return out
+    with kernel_lock():
+        ensure_initialized()
+        if "kernels" not in _KERNELS:
+            _KERNELS["kernels"] = _build(_STATE["ti"])
+        _KERNELS["kernels"][2](rows, cols, np.ascontiguousarray(weights, dtype=np.float64),
+                               np.ascontiguousarray(profile, dtype=np.float64), int(reach), out)
+    return out
 
 
 def wall_distance(walls: np.ndarray) -> np.ndarray:

@@ -45,10 +45,10 @@ import numpy as np
 
 from ._cost import AffineMap, pose_feature_pair
 from ._grid import GridMap
-from ._kernels import PAD, Launcher, ensure_initialized
+from ._kernels import _STATE, PAD, Launcher, ensure_initialized, kernel_lock
 from ._se2 import as_poses, inverse, transform_points
 
-__all__ = ["conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
+__all__ = ["conflict_grid", "envelope_reach", "envelope_profile", "near_conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
 
 CHUNK = 256
 # Batches of fewer point lookups (poses times walls of both maps) run on one thread: waking
@@ -68,8 +68,68 @@ def conflict_grid(hi: np.ndarray, unknown: np.ndarray) -> np.ndarray:
     inner = out[PAD:PAD + hi.shape[0], PAD:PAD + hi.shape[1]]
     np.subtract(1.0, hi, out=inner, casting="unsafe")          # in float64, rounded to float32 once
     inner[np.isnan(hi)] = 1.0
-    inner[unknown] = -1.0 - inner[unknown]
+    np.subtract(np.float32(-1.0), inner, out=inner, where=unknown)
     return out
+
+
+def envelope_reach(width_cells: float) -> int:
+    """Cells beyond which the envelope exp(-d^2 / 2 width^2) (width in cells) is below 2**-25, so
+    that 1 - hi rounds to 1 in float32: the conflict grid is the same as if it reached farther."""
+    return int(np.ceil(width_cells * np.sqrt(50.0 * np.log(2.0)))) + 1
+
+
+def envelope_profile(reach: int, ratio: float) -> np.ndarray:
+    """exp(-(d * ratio)^2 / 2) at d = sqrt(k) for the squared distances k = 0 .. reach^2, and a
+    last 0 for farther (ratio = resolution / width): the envelope of a wall at 1 by squared
+    distance in cells, in the blur's own arithmetic (``_blur``)."""
+    d = np.sqrt(np.arange(reach * reach + 1, dtype=np.float64))
+    d *= ratio
+    profile = d * -0.5
+    profile *= d
+    np.exp(profile, out=profile)
+    return np.append(profile, 0.0)
+
+
+def near_conflict_grid(prob: np.ndarray, squared: np.ndarray, reach: int, ratio: float,
+                       unknown: np.ndarray) -> np.ndarray:
+    """``conflict_grid`` of a map whose walls are all 1, from the squared distances to them that
+    ``_distance.near_squared_distance`` gives within ``reach`` (``envelope_reach``): hi =
+    max(p, ``envelope_profile``) within reach, p beyond, where the envelope is below 2**-25 and
+    changes nothing in float32. The same grid bit for bit as from the exact transform and the
+    blur, in one Taichi launch."""
+    h, w = prob.shape
+    out = np.empty((h + 2 * PAD, w + 2 * PAD), dtype=np.float32)
+    with kernel_lock():
+        ensure_initialized()
+        if "conflict" not in _KERNEL:
+            _KERNEL["conflict"] = _build_conflict(_STATE["ti"])
+        _KERNEL["conflict"](np.ascontiguousarray(prob, dtype=np.float64), squared, unknown.view(np.uint8),
+                            envelope_profile(reach, ratio), out)
+    return out
+
+
+def _build_conflict(ti):
+    @ti.kernel
+    def conflict(prob: ti.types.ndarray(dtype=ti.f64, ndim=2), squared: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=2), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                 out: ti.types.ndarray(dtype=ti.f32, ndim=2)):
+        far = profile.shape[0] - 1
+        h, w = prob.shape[0], prob.shape[1]
+        for i in range(out.shape[0]):                       # a row per work item, its cells in order
+            if i < PAD or i >= h + PAD:
+                for j in range(out.shape[1]):
+                    out[i, j] = ti.f32(_OFF_MAP)
+            else:
+                for j in range(PAD):
+                    out[i, j] = ti.f32(_OFF_MAP)
+                    out[i, w + PAD + j] = ti.f32(_OFF_MAP)
+                for j in range(w):
+                    envelope = profile[ti.min(squared[i - PAD, j], far)]
+                    known = unknown[i - PAD, j] == 0         # (fast math takes p == p for true on NaN)
+                    c = ti.cast(1.0 - ti.select(known, ti.max(prob[i - PAD, j], envelope), envelope), ti.f32)
+                    out[i, j + PAD] = ti.select(known, c, ti.f32(-1.0) - c)
+
+    return conflict
 
 
 def wall_points(grid: GridMap, occupied: float = 0.5):
@@ -186,7 +246,7 @@ def _finite(affine):
 
 class NumpyEnvelope:
     """The envelope discrepancy in plain NumPy from the maps alone (the oracle): each map's
-    envelope from SciPy's distance transform, every wall looked up in the other map's cell."""
+    envelope written wall by wall, every wall looked up in the other map's cell."""
 
     def __init__(self, a: GridMap, b: GridMap, width_a: float, width_b: float, unknown_cost=0.0):
         self._sides = []
@@ -214,13 +274,19 @@ class NumpyEnvelope:
 
 
 def _envelope_everywhere(grid: GridMap, width: float) -> np.ndarray:
-    """hi on every cell, unknown ones too: max(p, p(o) exp(-d^2 / 2 width^2)) with o the nearest
-    cell with p >= 0.5 at distance d (SciPy's exact transform); p of an unknown cell counts 0."""
-    from scipy import ndimage
-
+    """hi on every cell, unknown ones too: max(p, max_o p(o) exp(-d^2 / 2 width^2)) over the cells o
+    with p >= 0.5, each wall's Gaussian written into the square around it out to 8 widths (beyond,
+    below 1e-13); p of an unknown cell counts 0."""
     p = np.nan_to_num(grid.prob, nan=0.0)
-    walls = p >= 0.5
-    if not walls.any() or width == 0.0:
-        return p
-    d, (i, j) = ndimage.distance_transform_edt(~walls, return_indices=True)
-    return np.maximum(p, p[i, j] * np.exp(-0.5 * (d * grid.resolution / width) ** 2))
+    hi = p.copy()
+    if width == 0.0:
+        return hi
+    reach = int(np.ceil(8.0 * width / grid.resolution))
+    offsets = np.arange(-reach, reach + 1)
+    gauss = np.exp(-0.5 * ((offsets[:, None] ** 2 + offsets[None, :] ** 2) * (grid.resolution / width) ** 2))
+    h, w = p.shape
+    for r, c in zip(*np.nonzero(p >= 0.5)):
+        r0, r1, c0, c1 = max(r - reach, 0), min(r + reach + 1, h), max(c - reach, 0), min(c + reach + 1, w)
+        window = p[r, c] * gauss[r0 - r + reach:r1 - r + reach, c0 - c + reach:c1 - c + reach]
+        np.maximum(hi[r0:r1, c0:c1], window, out=hi[r0:r1, c0:c1])
+    return hi

@@ -10,13 +10,16 @@ from ._grid import GridMap, _trusted
 __all__ = ["coarsen"]
 
 
-def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line"] = "mean") -> GridMap:
+def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line"] = "mean", *,
+            binary: bool = False) -> GridMap:
     """``grid`` with cells ``factor`` times larger, unknown where a coarse cell has no known fine
     cell. Each coarse cell is the mean of its known fine cells; with ``reduce="max"`` their
     maximum; with ``reduce="line"`` ``min(1, factor * mean)``: a one-cell wall fills 1 / factor of
     a block it crosses, so it stays a wall at every level while a lone occupied cell fades (1/2,
     then 1/4 ...), where the mean fades both and the maximum keeps both. The corner pose is kept; a
-    last partial row or column is reduced over the cells it has."""
+    last partial row or column is reduced over the cells it has. ``binary``: the caller knows every
+    known cell is 0 or 1 (a trinary map), which factor 2 then adds up as counts (the same numbers,
+    in half the time)."""
     if reduce not in ("mean", "max", "line"):
         raise InvalidOptionError(f"reduce must be 'mean', 'max' or 'line'; got {reduce!r}")
     rows, cols = grid.shape
@@ -26,7 +29,8 @@ def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line
         padded = np.full((r2 * factor, c2 * factor), np.nan)
         padded[:rows, :cols] = grid.prob
     if factor == 2 and reduce != "max":
-        return _trusted(_halve(padded, reduce), grid.resolution * factor, grid.corner_pose)
+        return _trusted((_halve_binary if binary else _halve)(padded, reduce), grid.resolution * factor,
+                        grid.corner_pose)
     blocks = padded.reshape(r2, factor, c2, factor)
     unknown = np.isnan(blocks)
     known = (~unknown).sum(axis=(1, 3))
@@ -51,6 +55,20 @@ def _halve(prob, reduce):
     total = (z[0::2, 0::2] + z[0::2, 1::2]) + (z[1::2, 0::2] + z[1::2, 1::2])
     seen = ~unknown
     known = (seen[0::2, 0::2].astype(np.int64) + seen[0::2, 1::2]) + (seen[1::2, 0::2].astype(np.int64) + seen[1::2, 1::2])
+    if reduce == "line":
+        reduced = np.minimum(2 * total / np.maximum(known, 1), 1.0)
+    else:
+        reduced = total / np.maximum(known, 1)
+    return np.where(known > 0, reduced, np.nan)
+
+
+def _halve_binary(prob, reduce):
+    """``_halve`` of a grid whose known cells are 0 or 1: the blocks' occupied and known cells
+    counted in bytes (exact), then the same float64 arithmetic on the counts."""
+    ones = (prob == 1.0).view(np.uint8)
+    seen = (~np.isnan(prob)).view(np.uint8)
+    total = ((ones[0::2, 0::2] + ones[0::2, 1::2]) + (ones[1::2, 0::2] + ones[1::2, 1::2])).astype(np.float64)
+    known = (seen[0::2, 0::2] + seen[0::2, 1::2]) + (seen[1::2, 0::2] + seen[1::2, 1::2])
     if reduce == "line":
         reduced = np.minimum(2 * total / np.maximum(known, 1), 1.0)
     else:

@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._blur import wall_transform
 from ._covariance import centroid_metric
+from ._distance import FAR, wall_distance
 from ._se2 import inverse, transform_points
 
 __all__ = ["Evidence", "evidence", "compare_walls", "placed_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
@@ -64,19 +64,23 @@ class WallDistance:
     """A map's walls (p >= 0.5) and, per cell, the distance in cells to the nearest one (NaN on
     unknown cells)."""
 
-    def __init__(self, grid, distance=None, walls=None):
+    def __init__(self, grid, distance=None, walls=None, squared=None):
         """``distance``: the distance transform of the walls (``_blur.wall_transform``'s first
         array, float64) when the caller has it, which this takes over (its unknown cells become
-        NaN); ``walls``: (rows, cols) of the cells with p >= 0.5 when the caller has them."""
+        NaN); or ``squared``: the squared distances within some reach and ``_distance.FAR``
+        beyond (``near_squared_distance``: beyond a reach of more than ``CONFLICT_CELLS`` the
+        verdict's counts are the same); ``walls``: (rows, cols) of the cells with p >= 0.5 when the
+        caller has them."""
         p = grid.prob
         self.grid = grid
         rows, cols = np.nonzero(p >= 0.5) if walls is None else walls        # False on unknown (NaN) cells
         self.centres = grid.cell_centres(rows, cols)
-        if distance is None:
-            transform = wall_transform(grid)
-            distance = transform[0] if transform is not None else np.full(p.shape, np.inf)
+        self._squared = squared
+        if squared is None:
+            if distance is None:
+                distance = wall_distance(p >= 0.5)                           # +inf without walls
+            distance[np.isnan(p)] = np.nan
         self.distance = distance
-        self.distance[np.isnan(p)] = np.nan
 
     def lookup(self, rows, cols):
         """Distance to the nearest wall at continuous grid coordinates (``GridMap.grid_coordinates``;
@@ -85,7 +89,14 @@ class WallDistance:
         h, w = self.grid.shape
         inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
         out = np.full(len(rows), np.nan)
-        out[inside] = self.distance[rows[inside].astype(np.intp), cols[inside].astype(np.intp)]
+        r, c = rows[inside].astype(np.intp), cols[inside].astype(np.intp)
+        if self._squared is None:
+            out[inside] = self.distance[r, c]
+        else:
+            squared = self._squared[r, c]
+            d = np.where(squared == FAR, np.inf, np.sqrt(squared.astype(np.float64)))
+            d[np.isnan(self.grid.prob[r, c])] = np.nan
+            out[inside] = d
         return out
 
 

@@ -37,3 +37,32 @@ def test_generalised_transform_equals_brute_force(rng):
         rows, cols = np.indices((h, w))
         brute = np.min([(rows - a) ** 2 + (cols - b) ** 2 + f[a, b] for a, b in np.argwhere(np.isfinite(f))], axis=0)
         np.testing.assert_allclose(squared_distance(f), brute, rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("reach", [0, 1, 4, 13])
+def test_near_squared_distance_is_exact_within_reach(reach, rng):
+    from taichi_match._distance import FAR, near_squared_distance
+
+    for shape, share in [((1, 1), 1.0), ((1, 40), 0.1), ((37, 1), 0.1), ((60, 75), 0.01), ((90, 50), 0.2)]:
+        walls = rng.random(shape) < share
+        got = near_squared_distance(*np.nonzero(walls), shape, reach)
+        exact = np.rint(ndimage.distance_transform_edt(~walls) ** 2) if walls.any() else np.full(shape, np.inf)
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, np.where(exact <= reach * reach, exact, FAR).astype(np.int32))
+
+
+def test_near_weighted_envelope_is_the_largest_weighted_profile_within_reach(rng):
+    from taichi_match._distance import near_weighted_envelope
+
+    reach = 5
+    profile = np.exp(-0.5 * np.arange(reach * reach + 1) / 4.0)
+    for shape in [(1, 1), (23, 31), (40, 12)]:
+        rows, cols = rng.integers(0, shape[0], 12), rng.integers(0, shape[1], 12)
+        weights = rng.uniform(0.5, 1.0, 12)
+        got = near_weighted_envelope(rows, cols, weights, shape, reach, profile)
+        r, c = np.indices(shape)
+        brute = np.zeros(shape)
+        for a, b, w in zip(rows, cols, weights):
+            q = (r - a) ** 2 + (c - b) ** 2
+            brute = np.maximum(brute, np.where(q <= reach * reach, w * profile[np.minimum(q, reach * reach)], 0.0))
+        np.testing.assert_array_equal(got, brute)

@@ -485,3 +485,43 @@ def test_a_wall_on_unknown_cells_next_to_a_wall_pays_its_distance():
     assert bowl(1) < u < bowl(2)
     for name in ("taichi", "numpy"):
         np.testing.assert_allclose(make_engine(name, pa, pb, u)(poses)[0], expected, rtol=1e-6, atol=1e-7, err_msg=name)
+
+
+def test_the_conflict_grid_from_stamped_distances_equals_the_exact_transforms(rng):
+    # laser-like trinary maps (few walls, unknown areas): the stamped path of PreparedMap against
+    # the exact transform over every cell and the blur, bit for bit, unknown cells included
+    from taichi_match._blur import blur_everywhere, wall_transform
+    from taichi_match._envelope import conflict_grid
+
+    for shape in [(60, 200), (120, 160), (150, 90)]:
+        prob = np.where(rng.random(shape) < 0.004, 1.0, 0.0)
+        prob[rng.random(shape) < 0.4] = np.nan
+        prob[rng.integers(shape[0]), rng.integers(shape[1])] = 1.0
+        grid = GridMap(prob, 0.05)
+        for width in (0.01, 0.05, 0.1):
+            prepared = PreparedMap(grid, width, "envelope")
+            assert prepared._squared is not None, "the stamped path was not taken"
+            exact = conflict_grid(blur_everywhere(grid, width, kind="envelope", transform=wall_transform(grid)),
+                                  np.isnan(prob))
+            assert prepared.conflict.tobytes() == exact.tobytes()
+            # the verdict's distances agree with the exact transform where its thresholds look
+            d = prepared.wall_distance.lookup(*np.indices(shape).reshape(2, -1) + 0.5)
+            ref = wall_transform(grid)[0].ravel().copy()
+            ref[np.isnan(prob.ravel())] = np.nan
+            near = ~np.isnan(ref) & (ref <= 5)                   # within the reach, and beyond CONFLICT_CELLS
+            np.testing.assert_array_equal(d[near], ref[near])
+            assert np.all(d[~np.isnan(ref) & (ref > 5)] > 5) and np.all(np.isnan(d[np.isnan(ref)]))
+
+
+def test_known_cells_moments_equal_the_listed_cells(rng):
+    for shape, origin in [((40, 70), (-1.0, 2.0)), ((100, 33), (3.0, -4.0, 0.7)), ((1, 1), (0.0, 0.0))]:
+        prob = rng.random(shape)
+        prob[rng.random(shape) < 0.4] = np.nan
+        prob.flat[0] = 0.2
+        grid = GridMap(prob, 0.05, origin)
+        prepared = PreparedMap(grid, 0.1, "envelope")
+        centres = grid.cell_centres(*np.nonzero(grid.known))
+        centroid = centres.mean(axis=0)
+        np.testing.assert_allclose(prepared.centroid, centroid, rtol=1e-12, atol=1e-12)
+        assert prepared.spread == pytest.approx(max(np.sqrt(np.mean(np.sum((centres - centroid) ** 2, 1))), 0.05), rel=1e-12)
+        assert prepared.radius == pytest.approx(max(np.sqrt(np.mean(np.sum(centres**2, 1))), 0.05), rel=1e-12)

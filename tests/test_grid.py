@@ -90,3 +90,16 @@ def test_maps_too_large_are_refused_before_allocating():
     huge = np.lib.stride_tricks.as_strided(np.zeros(1), shape=(65536, MAX_CELLS // 65536 + 1), strides=(0, 0))
     with pytest.raises(InvalidMapError, match="too large"):
         GridMap(huge, 0.05)
+
+
+def test_coarsening_a_binary_map_by_counts_equals_the_float_reduction():
+    from taichi_match._pyramid import coarsen
+
+    rng = np.random.default_rng(4)
+    for shape in ((9, 14), (1, 1), (30, 31)):
+        prob = (rng.random(shape) < 0.3).astype(np.float64)
+        prob[rng.random(shape) < 0.25] = np.nan
+        grid = GridMap(prob, 0.05, (1.0, -2.0))
+        for reduce in ("line", "mean"):
+            fast, plain = coarsen(grid, reduce=reduce, binary=True), coarsen(grid, reduce=reduce)
+            assert fast.prob.tobytes() == plain.prob.tobytes() and fast.corner_pose == plain.corner_pose
