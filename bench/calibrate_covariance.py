@@ -41,7 +41,7 @@ import real_maps  # noqa: E402
 import submaps  # noqa: E402
 
 EXPONENTS = (0.0, 0.5, 0.55, 0.6, 0.65, 0.75, 1.0)
-SCALES = (2.0, 4.0, 4.5, 4.75, 5.0, 5.5, 6.0, 8.0, 11.0, 16.0)
+SCALES = (2.0, 4.0, 4.25, 4.5, 4.75, 5.0, 5.5, 6.0, 8.0, 11.0, 16.0)
 
 
 def self_matches(seed=3, crops_per_map=4, starts=3):

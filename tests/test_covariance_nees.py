@@ -187,7 +187,7 @@ def test_accepted_results_are_within_a_decimetre_and_a_degree(matches):
         assert np.hypot(e[0], e[1]) <= 0.1 and abs(e[2]) <= np.deg2rad(1.0), e
 
 
-# Measured (seeded, deterministic), with the published model (s 4.75, exponent 0.55, the plateau
+# Measured (seeded, deterministic), with the published model (s 4.25, exponent 0.55, the plateau
 # floor): 40 of 40 accepted; mean NEES 0.82 against the band 2.289 .. 3.805 for n = 40: error
 # rms 3.0 / 3.0 mm and 1.2 mrad against predicted sd 5.6 / 6.0 mm and 1.9 mrad, conservative by
 # about 2 in sd. The model is fitted on real data (the cycles of real laser submaps and real-map
