@@ -3,13 +3,19 @@ Transforms of Sampled Functions", Theory of Computing 8, 2012).
 
 ``squared_distance(f)`` returns, per cell c, ``min_o (|c - o|^2 + f(o))`` over the cells o where
 ``f`` is finite (distances in cells; +inf where no cell is): with ``f = 0`` on the walls and +inf
-elsewhere, the squared Euclidean distance to the nearest wall, exact (integers in float64). (With
-``f(o) = -2 s^2 ln p(o)``, ``exp(-D / (2 s^2))`` would be the upper envelope of grey walls'
-Gaussians; the blur does not use that yet.) Two passes of the one-dimensional transform, down every
+elsewhere, the squared Euclidean distance to the nearest wall, exact (integers in float64); with
+``f(o) = -2 s^2 ln p(o)``, ``exp(-D / (2 s^2))`` is the upper envelope of grey walls' Gaussians
+(``_blur``'s envelope of coarse levels). Two passes of the one-dimensional transform, down every
 column then along every row, each line a work item (the lower envelope of parabolas, with its
 scratch arrays per line), so the result does not depend on the schedule. Equal to
 ``scipy.ndimage.distance_transform_edt`` bit for bit in the tests, and 3x faster here on
 800 x 800 cells (20 ms against 60: no feature indices, both passes reading memory in order).
+
+For the few walls of a laser-built map (0.1-2 % of its cells) and a short reach, stamping is
+faster still: ``near_squared_distance`` (each wall writes its squared distance into the disc
+around it, the least wins: exact within the reach) and ``near_weighted_envelope`` (each grey wall
+its weighted Gaussian, the largest wins). Both are integer or floating-point extrema, the same
+whatever the order of the parallel writes.
 """
 
 import numpy as np
