@@ -69,38 +69,31 @@ def _build(ti):
                     dq = ti.cast(q - p, ti.f64)
                     d[line, q] = dq * dq + f[line, p]
 
-    @ti.kernel
-    def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
-              reach: ti.i32, d2: i32_2d):
-        # each wall writes its squared distance into the disc of radius reach around it; the least
-        # wins (an integer minimum: the same whatever the order)
-        h, w = d2.shape[0], d2.shape[1]
-        for k, di in ti.ndrange(rows_.shape[0], 2 * reach + 1):
-            i = rows_[k] + di - reach
-            if 0 <= i < h:
-                dy2 = (di - reach) * (di - reach)
-                for dj in range(-reach, reach + 1):
-                    j = cols_[k] + dj
-                    q = dy2 + dj * dj
-                    if 0 <= j < w and q <= reach * reach:
-                        ti.atomic_min(d2[i, j], q)
+    def stamp_kernel(weighted):
+        @ti.kernel
+        def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                  weights: ti.types.ndarray(dtype=ti.f64, ndim=1), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                  reach: ti.i32, out: ti.types.ndarray(ndim=2)):
+            # each wall writes into the disc of radius reach around it its squared distance (the
+            # least wins) or, weighted, weight * profile[squared distance] (the largest wins): an
+            # extremum, the same whatever the order of the writes
+            h, w = out.shape[0], out.shape[1]
+            for k, di in ti.ndrange(rows_.shape[0], 2 * reach + 1):
+                i = rows_[k] + di - reach
+                if 0 <= i < h:
+                    dy2 = (di - reach) * (di - reach)
+                    for dj in range(-reach, reach + 1):
+                        j = cols_[k] + dj
+                        q = dy2 + dj * dj
+                        if 0 <= j < w and q <= reach * reach:
+                            if ti.static(weighted):
+                                ti.atomic_max(out[i, j], weights[k] * profile[q])
+                            else:
+                                ti.atomic_min(out[i, j], q)
 
-    @ti.kernel
-    def stamp_weighted(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                       weights: ti.types.ndarray(dtype=ti.f64, ndim=1), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                       reach: ti.i32, out: f64_2d):
-        # each wall writes weight * profile[squared distance] into the disc around it; the largest
-        # wins (a maximum: the same whatever the order)
-        h, w = out.shape[0], out.shape[1]
-        for k, di in ti.ndrange(rows_.shape[0], 2 * reach + 1):
-            i = rows_[k] + di - reach
-            if 0 <= i < h:
-                dy2 = (di - reach) * (di - reach)
-                for dj in range(-reach, reach + 1):
-                    j = cols_[k] + dj
-                    q = dy2 + dj * dj
-                    if 0 <= j < w and q <= reach * reach:
-                        ti.atomic_max(out[i, j], weights[k] * profile[q])
+        return stamp
+
+    stamp, stamp_weighted = stamp_kernel(False), stamp_kernel(True)
 
     return rows, stamp, stamp_weighted
 
@@ -172,7 +165,7 @@ def near_squared_distance(rows, cols, shape, reach: int) -> np.ndarray:
         ensure_initialized()
         if "kernels" not in _KERNELS:
             _KERNELS["kernels"] = _build(_STATE["ti"])
-        _KERNELS["kernels"][1](rows, cols, reach, d2)
+        _KERNELS["kernels"][1](rows, cols, np.zeros(1), np.zeros(1), reach, d2)
     return d2
 
 

@@ -89,17 +89,17 @@ class PreparedMap:
         (coarse levels) its weighted envelope (``near_weighted_envelope``). Otherwise the exact
         transforms over every cell (``_blur``)."""
         self.walls = rows, cols, weights = wall_points(grid)
+        unknown = np.isnan(grid.prob)
         width = self.blur_width / grid.resolution
         # out to the envelope's reach, and beyond the verdict's conflict distance (``_verdict``)
-        reach = max(envelope_reach(width), int(np.ceil(CONFLICT_CELLS)) + 1) if width > 0 else 0
+        reach = self._reach = max(envelope_reach(width), int(np.ceil(CONFLICT_CELLS)) + 1) if width > 0 else 0
         few = width > 0 and 0 < len(rows) * (2 * reach + 1) ** 2 <= STAMP_WORK * grid.prob.size
         ones = len(rows) > 0 and weights.min() == 1.0
         ratio = grid.resolution / self.blur_width if width > 0 else 0.0
         if few and ones:
             self._squared = near_squared_distance(rows, cols, grid.shape, reach)
-            self.conflict = near_conflict_grid(grid.prob, self._squared, reach, ratio, np.isnan(grid.prob))
+            self.conflict = near_conflict_grid(grid.prob, self._squared, reach, ratio, unknown)
             return
-        unknown = np.isnan(grid.prob)
         if few:
             hi = np.fmax(grid.prob, near_weighted_envelope(rows, cols, weights, grid.shape, reach,
                                                            envelope_profile(reach, ratio)[:-1]))
@@ -111,7 +111,7 @@ class PreparedMap:
         self.conflict = conflict_grid(hi, unknown)
         if hi is not grid.prob:
             hi[unknown] = np.nan
-        self._blurred = grid._with_trusted(hi if hi is not grid.prob else grid.prob)
+        self._blurred = grid._with_trusted(hi)
 
     @property
     def blurred(self) -> GridMap:
@@ -119,7 +119,7 @@ class PreparedMap:
         distances were computed only within it, where it is below 2**-25 (``envelope_reach``))."""
         if self._blurred is None:
             grid = self.lower
-            reach = max(envelope_reach(self.blur_width / self.resolution), int(np.ceil(CONFLICT_CELLS)) + 1)
+            reach = self._reach
             envelope = envelope_profile(reach, self.resolution / self.blur_width)[np.minimum(self._squared, reach**2 + 1)]
             hi = np.fmax(grid.prob, envelope)
             hi[np.isnan(grid.prob)] = np.nan
