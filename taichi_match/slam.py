@@ -7,25 +7,37 @@ starting every ``submap_scans // 2`` scans, so that every scan lies in two subma
 is half full when the next one starts (as in Cartographer). Each scan is matched against the
 older of the two open submaps, which then holds at least half its scans: the scan as map B (its
 beams cast alone, with a decisive hit/miss model so that its rays are free and its returns
-walls), the submap as map A (its scans cast at their current estimates, in the frame of its
-first scan, the anchor), from the odometry's guess. Free space along the rays counts against
-the submap's walls: the matcher's negative information. A match that passes ``scan_accepted``
-and agrees with the odometry's prediction (a 99.9 % chi-square gate on the step's covariance
-plus the match's) gives the scan's pose and an edge from the anchor to the scan with the match's
-calibrated covariance; otherwise the scan keeps the odometry's prediction, and the open submaps
+walls), the submap as map A (its scans cast at their current estimates, in the submap's own
+frame), from the odometry's guess, with ``scan_matcher``'s options. Free space along the rays
+counts against the submap's walls: the matcher's negative information. A match that passes
+``scan_accepted`` and agrees with the odometry's prediction (a 99.9 % chi-square gate on the
+step's covariance plus the match's) gives the scan's pose and an edge from the submap's frame to
+the scan with the match's calibrated covariance; otherwise the scan keeps the odometry's
+prediction, and the open submaps
 leave it out until the next optimisation has placed it: at a corner that prediction can be
 degrees off, and the scans matched against it inherited the error (traced on the simulated run;
 over three jittered runs each, the median ATE fell on the simulated run and 7 of the 8 logs,
 csail rose from 0.107 to 0.116 m, and aces and orebro no longer derail: bench/SLAM.md).
 
-Back end. A pose graph over all scans (``gtsam``): odometry edges between consecutive scans
-(covariance from ``odometry_sd``), the front end's scan-to-submap edges, and loop closures. When
-a submap is complete it is matched against every earlier complete submap that shares no scan
-with it and whose anchor lies within ``loop_radius`` plus ``loop_growth`` times the distance
-travelled between the two, from the relative pose of the current estimates; accepted matches
-become edges between the anchors, unless the loop closures already in the graph whose anchors both
-lie within ``NEIGHBOUR_PATH`` metres of travel of the new one's mostly disagree with it: each
-predicts the new relative pose through the current estimates' short chains between the anchors
+Submap frames. Each submap has its own node in the graph, its frame, which starts at the
+estimate of its first scan (the anchor). A match against a submap's grid measures where the
+grid lies, and the grid is all its scans cast at their estimates in the frame: tying the match to
+one scan's node would bake that scan's error into every edge through it (on the simulated run,
+an anchor at a 92-degree turn was 2.5 degrees off its submap's other scans, and seven loop
+closures through it held it there). A scan of the submap that no match against it measured is
+tied to the frame by a member edge: their relative pose as estimated when the scan joined, with
+the odometry model's uncertainty of that displacement, under the Cauchy kernel; the frame so
+settles where most of its scans say (as Cartographer's submap nodes do).
+
+Back end. A pose graph over all scans and submap frames (``gtsam``): odometry edges between
+consecutive scans (covariance from ``odometry_sd``), the front end's scan-to-submap edges, member
+edges and loop closures. When a submap is complete it is matched against every earlier complete
+submap that shares no scan with it and whose frame lies within ``loop_radius`` plus
+``loop_growth`` times the distance travelled between the two, from the relative pose of the
+current estimates; accepted matches become edges between the frames, unless the loop closures
+already in the graph whose frames both lie within ``NEIGHBOUR_PATH`` metres of travel of the new
+one's mostly disagree with it: each predicts the new relative pose through the current
+estimates' short chains between the frames
 (their uncertainty from the odometry model, conservative) and agrees when within 3 sd (pairwise
 consistency, as in PCM). A candidate whose guess lies beyond the matcher's basin can converge
 onto an aliased pose: on aces, guesses 1.6-2.2 m and 6 degrees off in a corridor gave three
@@ -38,6 +50,7 @@ end; the estimates are replaced.
 
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
 poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
+Graph keys: scan k is key k; submap i's frame is key S + i (S scans).
 """
 
 import math
@@ -94,14 +107,18 @@ class SlamOptions:
     odometry_sd : (metres per metre travelled, radians per radian turned, radians per metre,
         metres floor, radians floor): the standard deviations of an odometry step's translation
         (each axis) and rotation.
-    loop_radius, loop_growth : a submap pair is a loop-closure candidate when their anchors lie
+    loop_radius, loop_growth : a submap pair is a loop-closure candidate when their frames lie
         within ``loop_radius + loop_growth * distance travelled between them`` (metres).
     robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
         closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
     loop_consistency : an accepted loop closure enters the graph only when the loop closures
-        already there near both its anchors do not mostly disagree with it (see the module
+        already there near both its frames do not mostly disagree with it (see the module
         docstring); False: every accepted one enters.
-    matcher : the ``MatchOptions`` of every match.
+    matcher : the ``MatchOptions`` of the loop-closure matches.
+    scan_matcher : the ``MatchOptions`` of the front end's scan-to-submap matches (fewer pyramid
+        levels are 1.5-2 times faster but derailed aces and edmonton, whose odometry guesses at
+        turns lie beyond one or two levels' basin: ATE 1.48 / 1.06 and 0.76 / 0.32 m at 1 / 2
+        levels, 0.09 and 0.19 at 3).
     """
 
     resolution: float = 0.05
@@ -114,6 +131,7 @@ class SlamOptions:
     robust_kernel: float = 1.5
     loop_consistency: bool = True
     matcher: MatchOptions = field(default_factory=MatchOptions)
+    scan_matcher: MatchOptions = field(default_factory=MatchOptions)
 
     def __post_init__(self):
         if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)
@@ -147,12 +165,17 @@ class SlamResult:
     poses : (S, 3) every scan's optimised pose in the world frame.
     timestamps : (S,) the scans' own timestamps.
     map : the global map, every scan cast at its optimised pose.
-    graph, values : the gtsam factor graph and its optimised values (keys: scan indices).
+    graph, values : the gtsam factor graph and its optimised values (keys: scan k is k, submap i's
+        frame S + i).
+    frames : (M, 3) each submap's frame in the world frame (submap i starts at scan
+        i * ``submap_scans // 2``).
     scan_matches : (accepted, tried) front-end matches.
-    loops : one dict per loop-closure candidate tried (submaps, anchors, accepted by the verdict,
-        edge: also in the graph, votes: (agree, disagree) of its neighbours when they were asked,
-        pose, ...).
-    scans : one dict per scan after the first (scan, anchor, pose in the anchor's frame, accepted
+    loops : one dict per loop-closure candidate tried (submaps, frames: their graph keys,
+        anchors: their first scans, members: each submap's (scans, poses in its frame) as cast
+        for the match, accepted by the verdict, edge: also in the graph, votes: (agree, disagree)
+        of its neighbours when they were asked, pose, ...).
+    scans : one dict per scan after the first (scan, submap: the index of the one it was matched
+        against, pose in that submap's frame, accepted
         by the verdict, edge: also within the odometry gate, covariance; pose and covariance None
         when the scan or its submap has no usable reading and was not matched).
     seconds : wall time per stage.
@@ -165,6 +188,7 @@ class SlamResult:
     map: object
     graph: object
     values: object
+    frames: np.ndarray
     scan_matches: tuple
     loops: list
     scans: list
@@ -174,11 +198,13 @@ class SlamResult:
 
 
 class _Submap:
-    def __init__(self, index, anchor):
+    def __init__(self, index, anchor, key):
         self.index = index
-        self.anchor = anchor          # the scan whose pose is the submap's frame
+        self.anchor = anchor          # its first scan, where its frame starts
+        self.key = key                # the graph key of its frame
         self.scans = []               # scan indices
         self.final_grid = None        # once complete: its scans cast at the estimates of then
+        self.final_poses = None       # (scans, poses in the frame) of that cast
 
 
 def _gtsam():
@@ -206,6 +232,7 @@ class Slam:
         options = options if options is not None else SlamOptions()
         self.options = replace(options, **overrides) if overrides else options
         self._matcher = Matcher(self.options.matcher)
+        self._scan_matcher = Matcher(self.options.scan_matcher)
         self._scan_model = replace(SCAN_MODEL, max_ray_length=self.options.max_ray_length)
         self._map_model = SensorModel(max_ray_length=self.options.max_ray_length)
 
@@ -243,11 +270,26 @@ class Slam:
         return np.array([len(beam_segments([scan], np.zeros((1, 3)), self._map_model)[0]) > 0 for scan in log.scans])
 
     def _submap_grid(self, log, submap, est, cast=None):
+        grid, _ = self._cast_submap(log, submap, est, cast)
+        return grid
+
+    def _cast_submap(self, log, submap, est, cast=None):
+        """The submap's scans (those with ``cast`` true) cast at their estimates in its frame:
+        (grid, (scans, poses in the frame))."""
         scans = submap.scans if cast is None else [j for j in submap.scans if cast[j]]
-        origin = inverse(est[submap.anchor])
+        origin = inverse(est[submap.key])
         poses = np.array([compose(origin, est[j]) for j in scans])
-        return scans_to_grid([log.scans[j] for j in scans], poses, resolution=self.options.resolution,
+        grid = scans_to_grid([log.scans[j] for j in scans], poses, resolution=self.options.resolution,
                              model=self._map_model)
+        return grid, (scans, poses)
+
+    def _member_edge(self, gtsam, graph, submap, k, est):
+        """The edge that ties scan ``k`` to the frame of a submap it lies in when no match of ``k``
+        against that submap measured it: their relative pose as estimated now, with the odometry
+        model's uncertainty of that displacement, under the Cauchy kernel."""
+        rel = compose(inverse(est[submap.key]), est[k])
+        graph.add(gtsam.BetweenFactorPose2(submap.key, k, gtsam.Pose2(*rel),
+                                           self._robust_noise(gtsam, self._odometry_covariance(rel))))
 
     def run(self, log: LaserLog, progress=None) -> SlamResult:
         """Map ``log`` (its scans' poses are read as odometry); ``progress(k, n)`` after each scan."""
@@ -274,19 +316,21 @@ class Slam:
                                      f"overlap, and a submap across the jump would be mostly empty; the odometry is "
                                      f"broken there (split the log)")
         half = opts.submap_scans // 2
+        frames = n // half + 2                   # an upper bound on the number of submaps
         usable = self._usable(log)
         castable = usable.copy()                 # scans the open submaps are cast from (see the module doc)
         seconds = {"scan grids": 0.0, "submap grids": 0.0, "scan matching": 0.0, "loop closing": 0.0,
                    "optimisation": 0.0, "final map": 0.0}
-        est = np.zeros((n, 3))
+        est = np.zeros((n + frames, 3))          # scans' poses, then the submaps' frames (graph keys)
         est[0] = odo[0]
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*est[0]), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))))
         values.insert(0, gtsam.Pose2(*est[0]))
-        submaps, done = [_Submap(0, 0)], []
-        submaps[0].scans.append(0)
-        travelled = np.zeros(n)                 # odometry path length up to each scan
+        keys = [0]
+        travelled = np.zeros(n + frames)        # odometry path length up to each scan (a frame: its first scan's)
+        submaps, done = [], []
+        self._open_submap(gtsam, graph, values, keys, submaps, done, 0, n, est, travelled)
         accepted = tried = 0
         loops, scans, match_seconds = [], [], []
         target_cast = None                      # (submap, scan, grid): the front end's target as last cast
@@ -306,33 +350,36 @@ class Slam:
                 scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
                                           model=self._scan_model)
                 t2 = time.perf_counter()
-                res = self._matcher.match(target_cast[2], scan_grid, compose(inverse(est[target.anchor]), pred))
+                res = self._scan_matcher.match(target_cast[2], scan_grid, compose(inverse(est[target.key]), pred))
                 match_seconds.append(res.seconds)
                 seconds["submap grids"] += t1 - t0
                 seconds["scan grids"] += t2 - t1
                 seconds["scan matching"] += time.perf_counter() - t2
                 tried += 1
             verdict = res is not None and scan_accepted(res)
-            gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.anchor]), pred),
-                                                           est[k - 1], est[target.anchor], delta)
-            scans.append({"scan": k, "anchor": target.anchor, "pose": None if res is None else res.pose,
+            gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.key]), pred),
+                                                           est[k - 1], est[target.key], delta)
+            scans.append({"scan": k, "submap": target.index, "pose": None if res is None else res.pose,
                           "accepted": verdict, "edge": gated,
                           "covariance": None if res is None else res.calibrated_covariance})
             castable[k] = usable[k] and gated             # else only once the graph has placed it
             if gated:
                 accepted += 1
-                est[k] = compose(est[target.anchor], res.pose)
+                est[k] = compose(est[target.key], res.pose)
                 cov = _tangent_covariance(res.pose, res.calibrated_covariance)
-                graph.add(gtsam.BetweenFactorPose2(target.anchor, k, gtsam.Pose2(*res.pose),
+                graph.add(gtsam.BetweenFactorPose2(target.key, k, gtsam.Pose2(*res.pose),
                                                    self._robust_noise(gtsam, cov)))
             else:
                 est[k] = pred
             est[k, 2] = wrap_angle(est[k, 2])
             values.insert(k, gtsam.Pose2(*est[k]))
-            if k % half == 0:
-                submaps.append(_Submap(len(done) + len(submaps), k))
+            keys.append(k)
             for s in submaps:
                 s.scans.append(k)
+                if not (gated and s is target):
+                    self._member_edge(gtsam, graph, s, k, est)
+            if k % half == 0:
+                self._open_submap(gtsam, graph, values, keys, submaps, done, k, n, est, travelled)
             if len(submaps[0].scans) >= opts.submap_scans or k == n - 1:
                 finished = submaps.pop(0)
                 t0 = time.perf_counter()
@@ -342,36 +389,51 @@ class Slam:
                 done.append(finished)
                 t1 = time.perf_counter()
                 seconds["loop closing"] += t1 - t0
-                est[:k + 1] = _optimise(gtsam, graph, values)
+                est[keys] = _optimise(gtsam, graph, values, keys)
                 target_cast = None                       # cast again at the new estimates
                 castable[:k + 1] = usable[:k + 1]        # the graph has placed every scan so far
-                values = _values(gtsam, est[:k + 1])
+                values = _values(gtsam, est, keys)
                 seconds["optimisation"] += time.perf_counter() - t1
             if progress is not None:
                 progress(k + 1, n)
         t0 = time.perf_counter()
-        est = _optimise(gtsam, graph, values)
-        values = _values(gtsam, est)
+        est[keys] = _optimise(gtsam, graph, values, keys)
+        values = _values(gtsam, est, keys)
         t1 = time.perf_counter()
         seconds["optimisation"] += t1 - t0
-        world = scans_to_grid(log.scans, est, resolution=opts.resolution, model=self._map_model)
+        world = scans_to_grid(log.scans, est[:n], resolution=opts.resolution, model=self._map_model)
         seconds["final map"] += time.perf_counter() - t1
-        return SlamResult(poses=est, timestamps=log.timestamps, map=world, graph=graph, values=values,
+        frame_keys = [key for key in keys if key >= n]
+        return SlamResult(poses=est[:n], timestamps=log.timestamps, map=world, graph=graph, values=values,
+                          frames=est[frame_keys],
                           scan_matches=(accepted, tried), loops=loops, scans=scans, seconds=seconds, options=opts,
                           match_seconds=np.array(match_seconds))
 
+    def _open_submap(self, gtsam, graph, values, keys, submaps, done, k, n, est, travelled):
+        """A new submap from scan ``k`` on: its frame (graph key ``n`` + its index) starts at the
+        scan's estimate, tied to it by a member edge."""
+        index = len(done) + len(submaps)
+        submap = _Submap(index, k, n + index)
+        est[submap.key] = est[k]
+        travelled[submap.key] = travelled[k]
+        values.insert(submap.key, gtsam.Pose2(*est[k]))
+        keys.append(submap.key)
+        submap.scans.append(k)
+        self._member_edge(gtsam, graph, submap, k, est)
+        submaps.append(submap)
+
     def _neighbour_votes(self, loop, edges, est, travelled):
-        """(agree, disagree): how many loop closures already in the graph with both anchors within
+        """(agree, disagree): how many loop closures already in the graph with both frames within
         ``NEIGHBOUR_PATH`` metres of travel of this one's predict its relative pose within 3 sd,
-        through the current estimates' short chains between the anchors (their uncertainty from
+        through the current estimates' short chains between the frames (their uncertainty from
         the odometry model: conservative, the estimates are better)."""
         per_m, _, rad_per_m, floor_m, floor_rad = self.options.odometry_sd
-        a, b = loop["anchors"]
+        a, b = loop["frames"]
         z = loop["pose"]
         t_z, r_z = _sd(loop["covariance"])
         agree = disagree = 0
         for other in edges:
-            a2, b2 = other["anchors"]
+            a2, b2 = other["frames"]
             along_a, along_b = abs(travelled[a2] - travelled[a]), abs(travelled[b2] - travelled[b])
             if max(along_a, along_b) > NEIGHBOUR_PATH:
                 continue
@@ -392,18 +454,19 @@ class Slam:
         out = []
         if not usable[submap.scans].any():
             return out                                   # final_grid stays None: never matched
-        submap.final_grid = self._submap_grid(log, submap, est)
+        submap.final_grid, submap.final_poses = self._cast_submap(log, submap, est)
         shared = set(submap.scans)
         for other in done:
             if other.final_grid is None or shared.intersection(other.scans):
                 continue
-            a, b = other.anchor, submap.anchor
+            a, b = other.key, submap.key
             reach = opts.loop_radius + opts.loop_growth * abs(travelled[b] - travelled[a])
             if math.hypot(*(est[b, :2] - est[a, :2])) > reach:
                 continue
             guess = compose(inverse(est[a]), est[b])
             res = self._matcher.match(other.final_grid, submap.final_grid, guess)
-            loop = {"submaps": (other.index, submap.index), "anchors": (a, b), "accepted": res.accepted,
+            loop = {"submaps": (other.index, submap.index), "frames": (a, b), "anchors": (other.anchor, submap.anchor),
+                    "members": (other.final_poses, submap.final_poses), "accepted": res.accepted,
                     "pose": res.pose, "guess": guess, "covariance": res.calibrated_covariance,
                     "evidence": res.evidence, "status": res.status.name}
             out.append(loop)
@@ -425,13 +488,12 @@ def _sd(covariance):
     return math.sqrt(max(np.linalg.eigvalsh(c[:2, :2]).max(), 0.0)), math.sqrt(max(c[2, 2], 0.0))
 
 
-def _optimise(gtsam, graph, values):
-    """The graph optimised from ``values`` (keys 0..m-1): (m, 3) poses."""
+def _optimise(gtsam, graph, values, keys):
+    """The graph optimised from ``values``: (len(keys), 3) poses of ``keys``."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    return np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()]
-                     for k in range(values.size())])
+    return np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()] for k in keys])
 
 OUTPUTS = ("trajectory.tum", "map.yaml", "map.pgm", "graph.g2o", "report.md")
 
@@ -525,10 +587,10 @@ def report(result: SlamResult, source: str = "") -> str:
     return "\n".join(lines)
 
 
-def _values(gtsam, est):
+def _values(gtsam, est, keys):
     values = gtsam.Values()
-    for k, p in enumerate(est):
-        values.insert(k, gtsam.Pose2(*p))
+    for k in keys:
+        values.insert(k, gtsam.Pose2(*est[k]))
     return values
 
 

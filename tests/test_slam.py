@@ -53,11 +53,9 @@ def test_simulated_run_relative_translation_error_within_target(simulated, mappe
     assert errors["rpe_m"] <= 0.03, errors
 
 
-@pytest.mark.xfail(strict=True, reason="RPE over 10 scans 0.50 deg on this run against the target's 0.3; runs with "
-                                       "the odometry moved by a micrometre give 0.27-0.50 (median 0.28, "
-                                       "bench/SLAM.md): the loop is chaotic, and scans at the 90-degree turns slide "
-                                       "0.3-0.6 degree for several scans in a row")
 def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
+    """0.287 degrees on this run; with the odometry moved by a micrometre 0.23-0.32 over five runs
+    (the loop is chaotic: bench/SLAM.md's spread), so this pins the run, not a margin."""
     errors = trajectory_errors(mapped.poses, simulated.truth)
     assert errors["rpe_deg"] <= 0.3, errors
 
@@ -78,7 +76,12 @@ def test_outputs_load(short_run, tmp_path):
     grid = read_ros_map(paths["map"])
     assert grid.shape == result.map.shape and grid.resolution == pytest.approx(0.05)
     graph, values = gtsam.readG2o(str(paths["graph"]), False)
-    assert values.size() == len(short_run.log) and graph.size() >= len(short_run.log) - 1
+    n, m = len(short_run.log), len(result.frames)
+    assert values.size() == n + m and graph.size() >= n - 1 + n     # odometry, and a match or member edge per scan
+    for k in range(n + m):                                            # scans, then the submaps' frames
+        pose = values.atPose2(k)
+        expected = result.poses[k] if k < n else result.frames[k - n]
+        np.testing.assert_allclose([pose.x(), pose.y(), pose.theta()], expected, rtol=1e-5, atol=1e-5)  # g2o: 6 digits
     assert "scan-to-submap matches accepted" in paths["report"].read_text()
     evo_file = pytest.importorskip("evo.tools.file_interface")
     trajectory = evo_file.read_tum_trajectory_file(str(paths["trajectory"]))
@@ -189,7 +192,7 @@ def test_target_is_cast_again_after_target_refresh_scans(short_run, monkeypatch,
 
 
 def test_loop_closures_vote_on_a_new_one():
-    """A loop closure agrees with the loop closures already in the graph near both its anchors when
+    """A loop closure agrees with the loop closures already in the graph near both its frames when
     they predict its relative pose through the estimates' short chains; one slid 2 m along a
     corridor (the aliasing that derailed aces) does not; one with no neighbours gets no vote."""
     from taichi_match import compose, inverse
@@ -201,7 +204,7 @@ def test_loop_closures_vote_on_a_new_one():
     cov = np.diag([0.03**2, 0.03**2, 0.005**2])
 
     def loop(a, b, offset=(0.0, 0.0, 0.0)):
-        return {"anchors": (a, b), "pose": compose(compose(inverse(est[a]), est[b]), offset), "covariance": cov}
+        return {"frames": (a, b), "pose": compose(compose(inverse(est[a]), est[b]), offset), "covariance": cov}
 
     edges = [loop(10, 89), loop(15, 83)]
     slam = Slam()
