@@ -19,15 +19,20 @@ degrees off, and the scans matched against it inherited the error (traced on the
 over three jittered runs each, the median ATE fell on the simulated run and 7 of the 8 logs,
 csail rose from 0.107 to 0.116 m, and aces and orebro no longer derail: bench/SLAM.md).
 
-Submap frames. Each submap has its own node in the graph, its frame, which starts at the
-estimate of its first scan (the anchor). A match against a submap's grid measures where the
-grid lies, and the grid is all its scans cast at their estimates in the frame: tying the match to
-one scan's node would bake that scan's error into every edge through it (on the simulated run,
-an anchor at a 92-degree turn was 2.5 degrees off its submap's other scans, and seven loop
-closures through it held it there). A scan of the submap that no match against it measured is
-tied to the frame by a member edge: their relative pose as estimated when the scan joined, with
-the odometry model's uncertainty of that displacement, under the Cauchy kernel; the frame so
-settles where most of its scans say (as Cartographer's submap nodes do).
+Submap frames. A submap's frame is its first scan's (the anchor's) node in the graph, or, with
+``submap_frames``, a node of its own that starts at the anchor's estimate. A match against a
+submap's grid measures where the grid lies, and the grid is all its scans cast at their estimates
+in the frame: tying the match to one scan's node bakes that scan's error into every edge through
+it (on the simulated run, an anchor at a 92-degree turn was 2.5 degrees off its submap's other
+scans, and seven loop closures through it held it there). With ``submap_frames``, a scan of the
+submap that no match against it measured is tied to the frame by a member edge: their relative
+pose as estimated when the scan joined, with the odometry model's uncertainty of that
+displacement, under the Cauchy kernel, so the frame settles where most of its scans say (as
+Cartographer's submap nodes do). Not the default: over five runs per log (bench/SLAM_submap_frames.md
+against bench/SLAM.md) the simulated run's RPE over 10 scans fell from 0.27-0.50 to 0.23-0.32
+degrees and freiburg-101's and orebro's median ATE fell, but five real logs' rose and two aces
+runs in five derailed instead of one; member edges from the scan's match covariance or a fixed
+1 cm / 0.1 degree derailed aces more often (3 and 4 runs in five).
 
 Back end. A pose graph over all scans and submap frames (``gtsam``): odometry edges between
 consecutive scans (covariance from ``odometry_sd``), the front end's scan-to-submap edges, member
@@ -114,6 +119,8 @@ class SlamOptions:
     loop_consistency : an accepted loop closure enters the graph only when the loop closures
         already there near both its frames do not mostly disagree with it (see the module
         docstring); False: every accepted one enters.
+    submap_frames : give each submap its own frame node in the graph (see the module docstring);
+        False: a submap's frame is its first scan's node.
     matcher : the ``MatchOptions`` of the loop-closure matches.
     scan_matcher : the ``MatchOptions`` of the front end's scan-to-submap matches (fewer pyramid
         levels are 1.5-2 times faster but derailed aces and edmonton, whose odometry guesses at
@@ -130,6 +137,7 @@ class SlamOptions:
     loop_growth: float = 0.1
     robust_kernel: float = 1.5
     loop_consistency: bool = True
+    submap_frames: bool = False
     matcher: MatchOptions = field(default_factory=MatchOptions)
     scan_matcher: MatchOptions = field(default_factory=MatchOptions)
 
@@ -137,8 +145,9 @@ class SlamOptions:
         if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)
                 and self.target_refresh >= 1):
             raise InvalidOptionError(f"target_refresh must be an integer >= 1; got {self.target_refresh!r}")
-        if not isinstance(self.loop_consistency, bool):
-            raise InvalidOptionError(f"loop_consistency must be True or False; got {self.loop_consistency!r}")
+        for name in ("loop_consistency", "submap_frames"):
+            if not isinstance(getattr(self, name), bool):
+                raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {self.submap_scans!r}")
         for name in ("resolution", "max_ray_length", "robust_kernel"):
@@ -376,7 +385,7 @@ class Slam:
             keys.append(k)
             for s in submaps:
                 s.scans.append(k)
-                if not (gated and s is target):
+                if opts.submap_frames and not (gated and s is target):
                     self._member_edge(gtsam, graph, s, k, est)
             if k % half == 0:
                 self._open_submap(gtsam, graph, values, keys, submaps, done, k, n, est, travelled)
@@ -403,23 +412,25 @@ class Slam:
         seconds["optimisation"] += t1 - t0
         world = scans_to_grid(log.scans, est[:n], resolution=opts.resolution, model=self._map_model)
         seconds["final map"] += time.perf_counter() - t1
-        frame_keys = [key for key in keys if key >= n]
+        frame_keys = [sub.key for sub in sorted(done + submaps, key=lambda sub: sub.index)]
         return SlamResult(poses=est[:n], timestamps=log.timestamps, map=world, graph=graph, values=values,
                           frames=est[frame_keys],
                           scan_matches=(accepted, tried), loops=loops, scans=scans, seconds=seconds, options=opts,
                           match_seconds=np.array(match_seconds))
 
     def _open_submap(self, gtsam, graph, values, keys, submaps, done, k, n, est, travelled):
-        """A new submap from scan ``k`` on: its frame (graph key ``n`` + its index) starts at the
-        scan's estimate, tied to it by a member edge."""
+        """A new submap from scan ``k`` on. With ``submap_frames`` its frame (graph key ``n`` + its
+        index) starts at the scan's estimate, tied to it by a member edge; else its frame is the
+        scan's own node."""
         index = len(done) + len(submaps)
-        submap = _Submap(index, k, n + index)
-        est[submap.key] = est[k]
-        travelled[submap.key] = travelled[k]
-        values.insert(submap.key, gtsam.Pose2(*est[k]))
-        keys.append(submap.key)
+        submap = _Submap(index, k, n + index if self.options.submap_frames else k)
         submap.scans.append(k)
-        self._member_edge(gtsam, graph, submap, k, est)
+        if self.options.submap_frames:
+            est[submap.key] = est[k]
+            travelled[submap.key] = travelled[k]
+            values.insert(submap.key, gtsam.Pose2(*est[k]))
+            keys.append(submap.key)
+            self._member_edge(gtsam, graph, submap, k, est)
         submaps.append(submap)
 
     def _neighbour_votes(self, loop, edges, est, travelled):

@@ -53,11 +53,22 @@ def test_simulated_run_relative_translation_error_within_target(simulated, mappe
     assert errors["rpe_m"] <= 0.03, errors
 
 
+@pytest.mark.xfail(strict=True, reason="RPE over 10 scans 0.50 deg on this run against the target's 0.3; runs with "
+                                       "the odometry moved by a micrometre give 0.27-0.50 (median 0.28, "
+                                       "bench/SLAM.md): the loop is chaotic, and scans at the 90-degree turns slide "
+                                       "0.3-0.6 degree for several scans in a row")
 def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
-    """0.287 degrees on this run; with the odometry moved by a micrometre 0.23-0.32 over five runs
-    (the loop is chaotic: bench/SLAM.md's spread), so this pins the run, not a margin."""
     errors = trajectory_errors(mapped.poses, simulated.truth)
     assert errors["rpe_deg"] <= 0.3, errors
+
+
+def test_simulated_run_with_submap_frames_meets_every_trajectory_target(simulated):
+    """With ``submap_frames`` (not the default: it loses on five real logs) the same run meets the
+    RPE target in degrees too: 0.287 degrees here, 0.23-0.32 over five runs with the odometry moved
+    by a micrometre (bench/SLAM_submap_frames.md), so this pins the run, not a margin."""
+    errors = trajectory_errors(Slam(submap_frames=True).run(simulated.log).poses, simulated.truth)
+    assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0, errors
+    assert errors["rpe_m"] <= 0.03 and errors["rpe_deg"] <= 0.3, errors
 
 
 def test_same_input_same_bits(short_run):
@@ -65,10 +76,11 @@ def test_same_input_same_bits(short_run):
     assert first.poses.tobytes() == second.poses.tobytes()
 
 
-def test_outputs_load(short_run, tmp_path):
+@pytest.mark.parametrize("frames", [False, True])
+def test_outputs_load(short_run, tmp_path, frames):
     from taichi_match.io import read_ros_map
 
-    result = Slam().run(short_run.log)
+    result = Slam(submap_frames=frames).run(short_run.log)
     paths = write_outputs(result, tmp_path / "out", source="simulated")
     stamps, poses = read_tum(paths["trajectory"])
     np.testing.assert_array_equal(stamps, short_run.log.timestamps)
@@ -77,8 +89,14 @@ def test_outputs_load(short_run, tmp_path):
     assert grid.shape == result.map.shape and grid.resolution == pytest.approx(0.05)
     graph, values = gtsam.readG2o(str(paths["graph"]), False)
     n, m = len(short_run.log), len(result.frames)
-    assert values.size() == n + m and graph.size() >= n - 1 + n     # odometry, and a match or member edge per scan
-    for k in range(n + m):                                            # scans, then the submaps' frames
+    half = result.options.submap_scans // 2
+    assert m == (n - 1) // half + 1                                   # a submap every ``half`` scans
+    if frames:                                                        # scans, then the submaps' frames
+        assert values.size() == n + m and graph.size() >= n - 1 + n  # odometry, a match or member edge per scan
+    else:                                                             # a frame is its first scan's node
+        assert values.size() == n and graph.size() >= n - 1
+        np.testing.assert_array_equal(result.frames, result.poses[::half])
+    for k in range(values.size()):
         pose = values.atPose2(k)
         expected = result.poses[k] if k < n else result.frames[k - n]
         np.testing.assert_allclose([pose.x(), pose.y(), pose.theta()], expected, rtol=1e-5, atol=1e-5)  # g2o: 6 digits
