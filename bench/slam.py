@@ -6,9 +6,10 @@ FLASER lines), then against ``NAME.reference.tum``:
 - ATE after one rigid SE(2) alignment and RPE over 10 scans, metres and degrees, beside the
   odometry's (``taichi_match.evaluation``, checked against evo in the tests);
 - loop closures tried / accepted by the verdict / in the graph (also consistent with their
-  neighbours) / wrong (in the graph, and the relative pose of the two submaps' frames differs from
-  the reference's by more than 0.2 m or 1 degree, Cartographer's criterion; a frame's reference
-  pose is the one that best carries its scans' cast poses onto their reference poses); and of
+  neighbours) / wrong (in the graph, and the relative pose of the two nodes it joins differs from
+  the reference's by more than 0.2 m or 1 degree, Cartographer's criterion; with
+  ``submap_frames`` a frame node's reference pose is the one that best carries its scans' cast
+  poses onto their reference poses); and of
   the wrong ones, how many fit the raw beam endpoints of the two submaps better than the
   reference's poses do (``ours_fits_better``): the references are themselves a SLAM result;
 - the map's misfit (``map_misfit``): the mean distance from each beam endpoint to the nearest
@@ -66,8 +67,10 @@ def true_frame(members, reference):
 
 def loop_error(loop, reference):
     """(metres, degrees): a loop closure's relative pose against the reference's relative pose of
-    its two submaps' frames (``true_frame``)."""
-    fa, fb = (true_frame(m, reference) for m in loop["members"])
+    the two nodes its edge joins: a scan's reference pose where a submap's frame is its first
+    scan's node (the default), ``true_frame`` where it is a node of its own (``submap_frames``)."""
+    fa, fb = (reference[key] if key < len(reference) else true_frame(m, reference)
+              for key, m in zip(loop["frames"], loop["members"]))
     e = compose(inverse(compose(inverse(fa), fb)), loop["pose"])
     return float(np.hypot(e[0], e[1])), float(np.degrees(wrap_angle(e[2])))
 
