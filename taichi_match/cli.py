@@ -203,7 +203,8 @@ def _slam(args):
             raise ValueError(f"{args.reference}: the reference must hold one pose per scan, at the scans' "
                              f"timestamps ({len(stamps)} poses for {len(log)} scans)")
     options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
-                                               ("max_ray_length", args.max_ray), ("target_refresh", args.target_refresh))
+                                               ("max_ray_length", args.max_ray), ("target_refresh", args.target_refresh),
+                                               ("submap_frames", args.submap_frames or None))
                              if v is not None})
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
@@ -368,6 +369,8 @@ def main(argv=None):
     slam.add_argument("--submap-scans", type=int, metavar="N", help="scans per submap (even, default 10)")
     slam.add_argument("--target-refresh", type=int, metavar="N", help="the front end casts its target submap again "
                                                                       "after N scans (default 1: for every scan)")
+    slam.add_argument("--submap-frames", action="store_true",
+                      help="give each submap its own node in the pose graph (see SlamOptions.submap_frames)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
     slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
     slam.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")

@@ -124,6 +124,16 @@ def test_cli_slam(short_run, tmp_path, capsys):
     assert err.startswith("taichi-match: error:") and "Traceback" not in err
 
 
+def test_cli_slam_submap_frames(short_run, tmp_path):
+    """``--submap-frames`` reaches the loop: the graph file holds a node per submap beyond the scans'."""
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    assert main(["slam", str(log_path), "--out", str(tmp_path / "out"), "--submap-frames"]) == 0
+    _, values = gtsam.readG2o(str(tmp_path / "out" / "graph.g2o"), False)
+    half = SlamOptions().submap_scans // 2
+    assert values.size() == len(short_run.log) + (len(short_run.log) - 1) // half + 1
+
+
 def test_carmen_round_trip(short_run, tmp_path):
     path = tmp_path / "run.log"
     write_carmen(path, short_run.log)
