@@ -411,3 +411,18 @@ def test_outputs_are_readable_like_any_new_file(short_run, tmp_path):
     paths = write_outputs(Slam().run(short_run.log), tmp_path / "out")
     for path in paths.values():
         assert (path.stat().st_mode & 0o777) == (0o666 & ~mask), path
+
+
+def test_overlap_share_by_hand():
+    """B (10 x 10 cells of 0.1 m, all known) on A (the same frame, only its left 4 columns known):
+    40 % of B's cells land on A's known cells; moved 2 m away, none; a B without known cells, 0."""
+    from taichi_match import GridMap
+    from taichi_match.slam import overlap_share
+
+    a_prob = np.full((10, 10), np.nan)
+    a_prob[:, :4] = 0.2
+    a, b = GridMap(a_prob, 0.1), GridMap(np.full((10, 10), 0.2), 0.1)
+    assert overlap_share(a, b, (0.0, 0.0, 0.0), stride=1) == pytest.approx(0.4)
+    assert overlap_share(a, b, (0.2, 0.0, 0.0), stride=1) == pytest.approx(0.2)   # two columns right
+    assert overlap_share(a, b, (2.0, 0.0, 0.0), stride=1) == 0.0
+    assert overlap_share(a, GridMap(np.full((10, 10), np.nan), 0.1), (0.0, 0.0, 0.0)) == 0.0
