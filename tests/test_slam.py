@@ -417,12 +417,12 @@ def test_overlap_share_by_hand():
     """B (10 x 10 cells of 0.1 m, all known) on A (the same frame, only its left 4 columns known):
     40 % of B's cells land on A's known cells; moved 2 m away, none; a B without known cells, 0."""
     from taichi_match import GridMap
-    from taichi_match.slam import overlap_share
+    from taichi_match.slam import Footprint, overlap_share
 
     a_prob = np.full((10, 10), np.nan)
     a_prob[:, :4] = 0.2
-    a, b = GridMap(a_prob, 0.1), GridMap(np.full((10, 10), 0.2), 0.1)
-    assert overlap_share(a, b, (0.0, 0.0, 0.0), stride=1) == pytest.approx(0.4)
-    assert overlap_share(a, b, (0.2, 0.0, 0.0), stride=1) == pytest.approx(0.2)   # two columns right
-    assert overlap_share(a, b, (2.0, 0.0, 0.0), stride=1) == 0.0
-    assert overlap_share(a, GridMap(np.full((10, 10), np.nan), 0.1), (0.0, 0.0, 0.0)) == 0.0
+    a, b = Footprint(GridMap(a_prob, 0.1), stride=1), Footprint(GridMap(np.full((10, 10), 0.2), 0.1), stride=1)
+    assert overlap_share(a, b, (0.0, 0.0, 0.0)) == pytest.approx(0.4)
+    assert overlap_share(a, b, (0.2, 0.0, 0.0)) == pytest.approx(0.2)   # two columns right
+    assert overlap_share(a, b, (2.0, 0.0, 0.0)) == 0.0
+    assert overlap_share(a, Footprint(GridMap(np.full((10, 10), np.nan), 0.1)), (0.0, 0.0, 0.0)) == 0.0
