@@ -53,13 +53,59 @@ def test_simulated_run_relative_translation_error_within_target(simulated, mappe
     assert errors["rpe_m"] <= 0.03, errors
 
 
-@pytest.mark.xfail(strict=True, reason="RPE over 10 scans 0.50 deg on this run against the target's 0.3; runs with "
-                                       "the odometry moved by a micrometre give 0.27-0.50 (median 0.28, "
+@pytest.mark.xfail(strict=True, reason="RPE over 10 scans 0.32 deg on this run against the target's 0.3; runs with "
+                                       "the odometry moved by a micrometre give 0.25-0.55 (median 0.32, "
                                        "bench/SLAM.md): the loop is chaotic, and scans at the 90-degree turns slide "
                                        "0.3-0.6 degree for several scans in a row")
 def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
     errors = trajectory_errors(mapped.poses, simulated.truth)
     assert errors["rpe_deg"] <= 0.3, errors
+
+
+def test_simulated_run_loop_closures_against_the_truth(simulated, mapped):
+    """The loop closures in the graph against the exact truth of the two scans each joins (wrong:
+    0.2 m or 1 degree off, Cartographer's criterion): 11 of 140 on this run, 17 of 133 before older
+    submaps were cast again at the current estimates for their matches. Pins this run; the target
+    (none wrong) is not met."""
+    from taichi_match import compose, inverse, wrap_angle
+
+    truth = simulated.truth
+    edges = [loop for loop in mapped.loops if loop["edge"]]
+    errors = [compose(inverse(compose(inverse(truth[a]), truth[b])), loop["pose"])
+              for loop in edges for a, b in [loop["frames"]]]
+    wrong = [e for e in errors if math.hypot(e[0], e[1]) > 0.2 or abs(math.degrees(wrap_angle(e[2]))) > 1.0]
+    assert len(edges) >= 100 and len(wrong) <= 11, (len(wrong), len(edges))
+
+
+def test_loop_closures_see_older_submaps_as_the_graph_places_them(simulated, monkeypatch):
+    """Every loop-closure match sees the older submap cast at poses (in its frame) within half a
+    cell and 0.2 degree of the estimates of the moment; the graph does move some after their
+    first cast, so some are cast again. The estimates are read from the live array the loop
+    closing receives, the cast poses from each loop's record."""
+    from taichi_match import compose, inverse, wrap_angle
+    from taichi_match.slam import RECAST_CELLS, RECAST_RAD
+
+    checked, recast = [], set()
+    original = Slam._close_loops
+
+    def checking(self, log, submap, done, est, *args):
+        loops = original(self, log, submap, done, est, *args)
+        for loop in loops:
+            scans, cast = loop["members"][0]
+            frame = loop["frames"][0]
+            now = np.array([compose(inverse(est[frame]), est[j]) for j in scans])
+            checked.append(max(np.abs(now[:, :2] - cast[:, :2]).max() / (RECAST_CELLS * self.options.resolution),
+                               np.abs(wrap_angle(now[:, 2] - cast[:, 2])).max() / RECAST_RAD))
+            first = first_cast.setdefault(loop["submaps"][0], cast)
+            if not np.array_equal(first, cast):
+                recast.add(loop["submaps"][0])
+        return loops
+
+    first_cast = {}
+    monkeypatch.setattr(Slam, "_close_loops", checking)
+    Slam().run(simulated.log)
+    assert len(checked) >= 100 and max(checked) <= 1.0, max(checked)
+    assert recast, "no submap was cast again"
 
 
 def test_simulated_run_with_submap_frames_meets_every_trajectory_target(simulated):
