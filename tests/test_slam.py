@@ -85,7 +85,7 @@ def test_loop_closures_see_older_submaps_as_the_graph_places_them(simulated, mon
     from taichi_match import compose, inverse, wrap_angle
     from taichi_match.slam import RECAST_CELLS, RECAST_RAD
 
-    checked, recast = [], set()
+    checked, recast, first_cast = [], set(), {}
     original = Slam._close_loops
 
     def checking(self, log, submap, done, est, *args):
@@ -101,7 +101,6 @@ def test_loop_closures_see_older_submaps_as_the_graph_places_them(simulated, mon
                 recast.add(loop["submaps"][0])
         return loops
 
-    first_cast = {}
     monkeypatch.setattr(Slam, "_close_loops", checking)
     Slam().run(simulated.log)
     assert len(checked) >= 100 and max(checked) <= 1.0, max(checked)
