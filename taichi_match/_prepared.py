@@ -279,7 +279,10 @@ class EnvelopeDiscrepancy:
         """The dense engine that counts the overlap, made when first needed (a middle pyramid
         level never counts)."""
         if self._dense_engine is None:
-            self._dense_engine = Engine(self.name, *self._maps)
+            # A's conflict grid is laid out as ``padded`` and known exactly where >= 0, all the
+            # count reads: no copy of A as values
+            a, b = self._maps
+            self._dense_engine = Engine(self.name, a, b, a_lookup=a.conflict)
         return self._dense_engine
 
     def __call__(self, poses, count="all"):
@@ -332,7 +335,9 @@ class Engine:
 
     counts_free = True           # the kernel counts the overlap as it sums
 
-    def __init__(self, name, a: PreparedMap, b: PreparedMap):
+    def __init__(self, name, a: PreparedMap, b: PreparedMap, a_lookup: np.ndarray = None):
+        """``a_lookup``: a float32 grid laid out as ``a.padded`` to read instead, when only the
+        overlap is wanted (its known cells exactly its cells >= 0)."""
         self.name = name
         self._resolution_a = a.resolution
         # the stencil kernel needs A's grid axes along its frame's axes (whole-cell shifts)
@@ -340,7 +345,7 @@ class Engine:
         self._a_grid, self._b_grid = a.lower, b.lower
         self._bilinear_oracle = None
         if name == "taichi":
-            self._kernel = TaichiEngine(a.padded, b.values, b.rows)
+            self._kernel = TaichiEngine(a.padded if a_lookup is None else a_lookup, b.values, b.rows)
             self._affine = AffineMap(a.lower, b.lower)
             self._rows_i = b.rows[:, 0].astype(np.float64)
         else:

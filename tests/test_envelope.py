@@ -320,6 +320,18 @@ def test_coarsening_equals_a_plain_numpy_block_reduction(shape, reduce, factor, 
     np.testing.assert_allclose(out.prob, expected, rtol=1e-14, atol=0.0)
 
 
+@pytest.mark.parametrize("shape", [(40, 60), (41, 60), (40, 61), (7, 3), (1, 1)])
+@pytest.mark.parametrize("reduce", ["mean", "line"])
+def test_binary_coarsening_is_the_general_one_bit_for_bit(shape, reduce, rng):
+    """``binary=True`` (counts and a table) gives the general reduction's numbers exactly, odd shapes too."""
+    prob = (rng.random(shape) < 0.3).astype(np.float64)
+    prob[rng.random(shape) < 0.4] = np.nan
+    grid = GridMap(prob, 0.05, (1.0, -2.0, 0.3))
+    fast, plain = coarsen(grid, reduce=reduce, binary=True), coarsen(grid, reduce=reduce)
+    assert fast.corner_pose == plain.corner_pose and fast.resolution == plain.resolution
+    np.testing.assert_array_equal(fast.prob, plain.prob)
+
+
 def test_line_reduction_fades_a_lone_cell_and_mean_and_max_do_as_documented():
     prob = np.zeros((8, 8))
     prob[3, 2] = 1.0
