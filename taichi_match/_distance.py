@@ -20,7 +20,7 @@ whatever the order of the parallel writes.
 
 import numpy as np
 
-from ._kernels import _STATE, ensure_initialized, kernel_lock
+from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
 
 __all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "FAR"]
 
@@ -73,11 +73,12 @@ def _build(ti):
         @ti.kernel
         def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
                   weights: ti.types.ndarray(dtype=ti.f64, ndim=1), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                  reach: ti.i32, out: ti.types.ndarray(ndim=2)):
+                  reach_: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(ndim=2)):
             # each wall writes into the disc of radius reach around it its squared distance (the
             # least wins) or, weighted, weight * profile[squared distance] (the largest wins): an
             # extremum, the same whatever the order of the writes
             h, w = out.shape[0], out.shape[1]
+            reach = reach_[0]
             for k, di in ti.ndrange(rows_.shape[0], 2 * reach + 1):
                 i = rows_[k] + di - reach
                 if 0 <= i < h:
@@ -138,10 +139,10 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
         f_t = _SCRATCH.get("f_t", (w, h), np.float64)
         f_t[...] = f.T
         g_t = _SCRATCH.get("g_t", (w, h), np.float64)
-        rows(f_t, g_t, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64))
+        _launch(rows, (f_t, g_t, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64)), None)
         g = _SCRATCH.get("f_t", (h, w), np.float64)            # f_t is spent
         g[...] = g_t.T
-        rows(g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64))
+        _launch(rows, (g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64)), None)
     return d
 
 
@@ -165,7 +166,7 @@ def near_squared_distance(rows, cols, shape, reach: int) -> np.ndarray:
         ensure_initialized()
         if "kernels" not in _KERNELS:
             _KERNELS["kernels"] = _build(_STATE["ti"])
-        _KERNELS["kernels"][1](rows, cols, np.zeros(1), np.zeros(1), reach, d2)
+        _launch(_KERNELS["kernels"][1], (rows, cols, np.zeros(1), np.zeros(1), np.array([reach], dtype=np.int32), d2), None)
     return d2
 
 
@@ -183,8 +184,9 @@ def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.n
         ensure_initialized()
         if "kernels" not in _KERNELS:
             _KERNELS["kernels"] = _build(_STATE["ti"])
-        _KERNELS["kernels"][2](rows, cols, np.ascontiguousarray(weights, dtype=np.float64),
-                               np.ascontiguousarray(profile, dtype=np.float64), int(reach), out)
+        _launch(_KERNELS["kernels"][2], (rows, cols, np.ascontiguousarray(weights, dtype=np.float64),
+                                         np.ascontiguousarray(profile, dtype=np.float64),
+                                         np.array([reach], dtype=np.int32), out), None)
     return out
 
 

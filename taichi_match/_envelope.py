@@ -45,7 +45,7 @@ import numpy as np
 
 from ._cost import AffineMap, pose_feature_pair
 from ._grid import GridMap
-from ._kernels import _STATE, PAD, Launcher, ensure_initialized, kernel_lock
+from ._kernels import _STATE, PAD, Launcher, _launch, ensure_initialized, kernel_lock
 from ._se2 import as_poses, inverse, transform_points
 
 __all__ = ["conflict_grid", "envelope_reach", "envelope_profile", "near_conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
@@ -103,8 +103,9 @@ def near_conflict_grid(prob: np.ndarray, squared: np.ndarray, reach: int, ratio:
         ensure_initialized()
         if "conflict" not in _KERNEL:
             _KERNEL["conflict"] = _build_conflict(_STATE["ti"])
-        _KERNEL["conflict"](np.ascontiguousarray(prob, dtype=np.float64), squared, unknown.view(np.uint8),
-                            envelope_profile(reach, ratio), out)
+        _launch(_KERNEL["conflict"], (np.ascontiguousarray(prob, dtype=np.float64), np.ascontiguousarray(squared),
+                                      np.ascontiguousarray(unknown).view(np.uint8), envelope_profile(reach, ratio), out),
+                None)
     return out
 
 

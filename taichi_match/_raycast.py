@@ -3,8 +3,13 @@
 The Taichi engine of ``scans.count_traversals``; it returns exactly what the NumPy reference does.
 Conventions:
 
-- A segment is (u0, v0, u1, v1) in grid coordinates, in cells: u the column, v the row; cell
-  (row, col) spans [col, col + 1) x [row, row + 1).
+- A segment is (u0, v0, u1, v1) in lattice coordinates, in cells (metres / resolution, in the
+  grid's frame): u the column, v the row; lattice cell (row, col) spans [col, col + 1) x
+  [row, row + 1). The counts' array holds the lattice cells from ``offset`` = (row0, col0) on: its
+  cell [r, c] is lattice cell (row0 + r, col0 + c). The walk runs on the lattice and only the
+  counting subtracts the (integer) offset, so a beam's cells do not depend on the array's extent:
+  counts of several launches into one array (``out``, an array grown between them) are those of
+  one launch, bit for bit.
 - Per beam: +1 to ``hits`` at the endpoint cell (floor(v1), floor(u1)) if the beam has a return,
   and +1 to ``misses`` at every other cell the segment passes through (at the endpoint cell too
   when it has no return), except the cells where a beam of its own scan ends with a return: a
@@ -32,7 +37,7 @@ program, as it does for the kernels of ``_kernels``.
 import numpy as np
 
 from ._errors import InvalidOptionError
-from ._kernels import _STATE, ensure_initialized, kernel_lock
+from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
 
 __all__ = ["count_traversals_taichi"]
 
@@ -69,12 +74,15 @@ def _build_kernel(ti):
     def traverse(segments: ti.types.ndarray(dtype=ti.f64, ndim=2), hit: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  own: ti.types.ndarray(dtype=ti.i32, ndim=1), own_lo: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  own_hi: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 hits: ti.types.ndarray(dtype=ti.i32, ndim=2), misses: ti.types.ndarray(dtype=ti.i32, ndim=2)):
+                 hits: ti.types.ndarray(dtype=ti.i32, ndim=2), misses: ti.types.ndarray(dtype=ti.i32, ndim=2),
+                 offset: ti.types.ndarray(dtype=ti.i32, ndim=1)):
         rows = hits.shape[0]
         cols = hits.shape[1]
+        row0 = offset[0]
+        col0 = offset[1]
         for k in range(segments.shape[0]):
-            end_col = ti.cast(ti.floor(segments[k, 2]), ti.i32)
-            end_row = ti.cast(ti.floor(segments[k, 3]), ti.i32)
+            end_col = ti.cast(ti.floor(segments[k, 2]), ti.i32) - col0
+            end_row = ti.cast(ti.floor(segments[k, 3]), ti.i32) - row0
             if hit[k] != 0 and 0 <= end_row < rows and 0 <= end_col < cols:
                 ti.atomic_add(hits[end_row, end_col], 1)
         for k in range(segments.shape[0]):
@@ -82,15 +90,15 @@ def _build_kernel(ti):
             v0 = segments[k, 1]
             u1 = segments[k, 2]
             v1 = segments[k, 3]
-            end_col = ti.cast(ti.floor(u1), ti.i32)
-            end_row = ti.cast(ti.floor(v1), ti.i32)
+            end_col = ti.cast(ti.floor(u1), ti.i32) - col0          # in the array
+            end_row = ti.cast(ti.floor(v1), ti.i32) - row0
             has_hit = hit[k] != 0
             lo = own_lo[k]
             hi = own_hi[k]
             # direction per axis from the endpoints themselves (no subtraction to round to 0)
             su = ti.select(u1 > u0, 1, ti.select(u1 < u0, -1, 0))
             sv = ti.select(v1 > v0, 1, ti.select(v1 < v0, -1, 0))
-            # the first cell: on a grid line, the one the segment moves into
+            # the first cell (on the lattice): on a grid line, the one the segment moves into
             col = ti.cast(ti.select(su < 0, ti.ceil(u0) - 1.0, ti.floor(u0)), ti.i32)
             row = ti.cast(ti.select(sv < 0, ti.ceil(v0) - 1.0, ti.floor(v0)), ti.i32)
             # the next grid line along each axis: the far edge of the current cell
@@ -100,14 +108,16 @@ def _build_kernel(ti):
             t_v = next_crossing(line_v, v0, v1, sv)
             steps = ti.cast(ti.abs(u1 - u0) + ti.abs(v1 - v0), ti.i32) + 3
             for _ in range(steps):
-                inside = 0 <= row < rows and 0 <= col < cols
-                if inside and not (has_hit and row == end_row and col == end_col):
+                r = row - row0                                  # in the array
+                c = col - col0
+                inside = 0 <= r < rows and 0 <= c < cols
+                if inside and not (has_hit and r == end_row and c == end_col):
                     counted = True
                     if lo < hi:
-                        if hits[row, col] > 0:                  # a hit there: its own scan's?
-                            counted = not own_hit(own, lo, hi, row * cols + col)
+                        if hits[r, c] > 0:                      # a hit there: its own scan's?
+                            counted = not own_hit(own, lo, hi, r * cols + c)
                     if counted:
-                        ti.atomic_add(misses[row, col], 1)
+                        ti.atomic_add(misses[r, c], 1)
                 t = ti.min(t_u, t_v)
                 if t >= 1.0:
                     break
@@ -119,17 +129,17 @@ def _build_kernel(ti):
                     row += sv
                     line_v += sv
                     t_v = next_crossing(line_v, v0, v1, sv)
-                if (col < 0 and su <= 0) or (col >= cols and su >= 0) or (row < 0 and sv <= 0) or \
-                        (row >= rows and sv >= 0):
+                if (col < col0 and su <= 0) or (col >= col0 + cols and su >= 0) or (row < row0 and sv <= 0) or \
+                        (row >= row0 + rows and sv >= 0):
                     break                               # outside and moving away: never back in
 
     return traverse
 
 
-def own_hit_cells(segments, hit, scan, shape):
-    """(own, lo, hi): the linear indices (row * cols + col) of the cells where each scan's beams
-    end with a return, sorted within each scan, and per beam the range ``own[lo:hi]`` of its own
-    scan's (empty when ``scan`` is None: each beam its own scan)."""
+def own_hit_cells(segments, hit, scan, shape, offset=(0, 0)):
+    """(own, lo, hi): the linear indices (r * cols + c, in the array) of the cells where each
+    scan's beams end with a return, sorted within each scan, and per beam the range
+    ``own[lo:hi]`` of its own scan's (empty when ``scan`` is None: each beam its own scan)."""
     rows, cols = shape
     n = segments.shape[0]
     if scan is None:
@@ -137,7 +147,7 @@ def own_hit_cells(segments, hit, scan, shape):
     scan = np.ascontiguousarray(scan, dtype=np.int64)
     if scan.shape != (n,) or (n > 1 and np.any(np.diff(scan) < 0)):
         raise InvalidOptionError(f"scan must be (R,) and non-decreasing (beams grouped by scan); got {scan.shape}")
-    end_col, end_row = np.floor(segments[:, 2]), np.floor(segments[:, 3])
+    end_col, end_row = np.floor(segments[:, 2]) - offset[1], np.floor(segments[:, 3]) - offset[0]
     keep = (hit != 0) & (end_row >= 0) & (end_row < rows) & (end_col >= 0) & (end_col < cols)
     cells = (end_row[keep] * cols + end_col[keep]).astype(np.int64)
     order = np.lexsort((cells, scan[keep]))
@@ -148,28 +158,32 @@ def own_hit_cells(segments, hit, scan, shape):
     return (own if len(own) else np.zeros(1, dtype=np.int32)), lo, hi
 
 
-def count_traversals_taichi(segments, hit, shape, scan=None):
+def count_traversals_taichi(segments, hit, shape, scan=None, offset=(0, 0), out=None):
     """Count, per cell, the beams that end in it with a return and the beams that pass through it.
 
     Parameters
     ----------
     segments : array_like (R, 4) float64
-        The beams as (u0, v0, u1, v1) in grid coordinates (cells; u column, v row), from the
+        The beams as (u0, v0, u1, v1) in lattice coordinates (cells; u column, v row), from the
         laser to the endpoint. Finite, at most ``MAX_COORDINATE`` in magnitude.
     hit : array_like (R,) int32
         1 if the beam has a return (its endpoint cell is hit), 0 if not.
     shape : (int, int)
-        The grid's (rows, cols).
+        The array's (rows, cols).
     scan : array_like (R,) int, optional
         The scan of each beam, non-decreasing: a beam does not miss the cells where beams of its
         own scan end with a return. None: every beam is a scan of its own.
+    offset : (int, int)
+        The lattice cell (row0, col0) of the array's cell [0, 0].
+    out : (hits, misses), optional
+        C-contiguous int32 arrays of ``shape`` to add the counts into (returned).
 
     Returns
     -------
     hits, misses : ndarray of ``shape``, int32
         Per cell, the beams with a return ending in it, and the beams passing through it
         otherwise (each beam once per cell; a beam without a return also misses its endpoint's
-        cell). Cells outside the grid are not counted. Equal to ``scans.count_traversals`` with
+        cell). Cells outside the array are not counted. Equal to ``scans.count_traversals`` with
         ``engine="numpy"``.
 
     Raises
@@ -184,16 +198,24 @@ def count_traversals_taichi(segments, hit, shape, scan=None):
         raise InvalidOptionError(f"segments must be (R, 4) and hit (R,); got {segments.shape} and {hit.shape}")
     if rows < 0 or cols < 0:
         raise InvalidOptionError(f"shape must be (rows, cols) >= 0; got {shape!r}")
-    hits = np.zeros((rows, cols), dtype=np.int32)
-    misses = np.zeros((rows, cols), dtype=np.int32)
+    row0, col0 = (int(n) for n in offset)
+    if out is None:
+        hits, misses = np.zeros((rows, cols), dtype=np.int32), np.zeros((rows, cols), dtype=np.int32)
+    else:
+        hits, misses = out
+        if any(a.shape != (rows, cols) or a.dtype != np.int32 or not a.flags.c_contiguous for a in out):
+            raise InvalidOptionError(f"out must be two C-contiguous int32 arrays of shape {(rows, cols)}")
+    if abs(row0) > MAX_COORDINATE or abs(col0) > MAX_COORDINATE:
+        raise InvalidOptionError(f"offset must be at most {MAX_COORDINATE:g} cells; got {offset!r}")
     if segments.shape[0] == 0 or hits.size == 0:
         return hits, misses
     if not np.all(np.abs(segments) <= MAX_COORDINATE):          # also false for NaN
         raise InvalidOptionError(f"segment coordinates must be finite and at most {MAX_COORDINATE:g} cells")
-    own, lo, hi = own_hit_cells(segments, hit, scan, (rows, cols))
+    own, lo, hi = own_hit_cells(segments, hit, scan, (rows, cols), (row0, col0))
     with kernel_lock():
         ensure_initialized()
         if _KERNEL["traverse"] is None:
             _KERNEL["traverse"] = _build_kernel(_STATE["ti"])
-        _KERNEL["traverse"](segments, hit, own, lo, hi, hits, misses)
+        _launch(_KERNEL["traverse"], (segments, hit, own, lo, hi, hits, misses, np.array([row0, col0], dtype=np.int32)),
+                None)
     return hits, misses

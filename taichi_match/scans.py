@@ -22,7 +22,9 @@ The hit/miss model (an inverse sensor model in log-odds, as in Thrun, Burgard & 
   whatever the parallel schedule).
 
 The grid is axis-aligned in the frame the poses are given in, its cell boundaries on multiples of
-the resolution, just large enough for every segment (plus ``margin`` cells of unknown around).
+the resolution (the lattice), just large enough for every segment (plus ``margin`` cells of unknown
+around). A beam's cells are found on the lattice, whatever the grid's extent, so ``BeamCounts``
+can add scans to a grid that grows and still give ``scans_to_grid``'s grid of them all, bit for bit.
 
 ``engine="taichi"`` casts all beams of all scans in one parallel launch; ``engine="numpy"`` is the
 plain reference it is tested against.
@@ -37,7 +39,7 @@ from ._errors import InvalidOptionError, InvalidPoseError
 from ._grid import GridMap, _trusted, trinary
 from ._se2 import as_poses
 
-__all__ = ["SensorModel", "beam_segments", "scans_to_grid", "trinary", "count_traversals"]
+__all__ = ["SensorModel", "beam_segments", "scans_to_grid", "BeamCounts", "trinary", "count_traversals"]
 
 
 # Grids cast from scans hold at most this many cells (about 6 GB of arrays while casting).
@@ -128,35 +130,36 @@ def _cells_of_segment(u0, v0, u1, v1):
     return rows, cols
 
 
-def count_traversals(starts, ends, hit, origin, resolution, shape, engine: Literal["taichi", "numpy"] = "taichi",
-                     scan=None):
+def count_traversals(starts, ends, hit, offset, resolution, shape, engine: Literal["taichi", "numpy"] = "taichi",
+                     scan=None, out=None):
     """(hits, misses) int32 arrays of ``shape``: per cell, the beams ending in it with a return and
     the beams passing through it otherwise (see the module docstring). Segments in metres in the
-    grid's frame; the grid's cell (0, 0) has its outer corner at ``origin``. ``scan`` (R,)
-    non-decreasing: each beam's scan (a beam does not miss where its own scan's beams end with a
-    return); None: each beam a scan of its own."""
-    u0 = (starts[:, 0] - origin[0]) / resolution
-    v0 = (starts[:, 1] - origin[1]) / resolution
-    u1 = (ends[:, 0] - origin[0]) / resolution
-    v1 = (ends[:, 1] - origin[1]) / resolution
+    grid's frame, whose lattice of cells has its lines on multiples of ``resolution``; the array's
+    cell [r, c] is the lattice cell (row0 + r, col0 + c), ``offset`` = (row0, col0) (integers), so
+    a beam's cells do not depend on the array's extent. ``scan`` (R,) non-decreasing: each beam's
+    scan (a beam does not miss where its own scan's beams end with a return); None: each beam a
+    scan of its own. ``out``: (hits, misses) C-contiguous int32 arrays of ``shape`` to add into."""
+    row0, col0 = (int(n) for n in offset)
+    u0, v0 = starts[:, 0] / resolution, starts[:, 1] / resolution
+    u1, v1 = ends[:, 0] / resolution, ends[:, 1] / resolution
     if engine == "taichi":
         from ._raycast import count_traversals_taichi
 
         return count_traversals_taichi(np.column_stack([u0, v0, u1, v1]), np.asarray(hit, dtype=np.int32), shape,
-                                       scan)
+                                       scan, (row0, col0), out)
     if engine != "numpy":
         raise InvalidOptionError(f"engine must be 'taichi' or 'numpy'; got {engine!r}")
-    hits = np.zeros(shape, dtype=np.int32)
-    misses = np.zeros(shape, dtype=np.int32)
+    hits, misses = out if out is not None else (np.zeros(shape, dtype=np.int32), np.zeros(shape, dtype=np.int32))
     own = {}                                    # scan -> the cells its beams end in with a return
     for k in range(len(u0)):
-        row, col = int(np.floor(v1[k])), int(np.floor(u1[k]))
+        row, col = int(np.floor(v1[k])) - row0, int(np.floor(u1[k])) - col0
         if hit[k] and scan is not None and 0 <= row < shape[0] and 0 <= col < shape[1]:
             own.setdefault(scan[k], set()).add(row * shape[1] + col)
     for k in range(len(u0)):
         rows, cols = _cells_of_segment(u0[k], v0[k], u1[k], v1[k])
+        rows, cols = rows - row0, cols - col0
         if hit[k]:
-            end_row, end_col = int(np.floor(v1[k])), int(np.floor(u1[k]))
+            end_row, end_col = int(np.floor(v1[k])) - row0, int(np.floor(u1[k])) - col0
             if 0 <= end_row < shape[0] and 0 <= end_col < shape[1]:
                 hits[end_row, end_col] += 1
             free = (rows != end_row) | (cols != end_col)
@@ -168,6 +171,74 @@ def count_traversals(starts, ends, hit, origin, resolution, shape, engine: Liter
             cells = cells[~np.isin(cells, list(own[scan[k]]))]
         np.add.at(misses.reshape(-1), cells, 1)
     return hits, misses
+
+
+class BeamCounts:
+    """Hits and misses of scans cast one batch after another (``add``) on a grid that grows to
+    hold every beam: ``grid()`` after any number of ``add`` calls is ``scans_to_grid`` of all the
+    scans added so far, bit for bit (the counts are integers and a beam's cells do not depend on
+    the grid's extent). A mapping loop adds a submap's new scan instead of casting them all again.
+
+    Parameters are ``scans_to_grid``'s.
+    """
+
+    def __init__(self, *, resolution: float = 0.05, model: SensorModel = SensorModel(), margin: int = 2,
+                 engine: Literal["taichi", "numpy"] = "taichi"):
+        if not np.isfinite(resolution) or resolution <= 0.0:
+            raise InvalidOptionError(f"resolution must be finite and > 0; got {resolution!r}")
+        self.resolution, self.model, self.margin, self.engine = resolution, model, margin, engine
+        self._offset = np.zeros(2, dtype=np.int64)    # lattice (row, col) of the arrays' cell [0, 0]
+        self._hits = self._misses = np.zeros((0, 0), dtype=np.int32)
+
+    def add(self, scans, poses) -> "BeamCounts":
+        """Cast ``scans`` taken at ``poses`` (S, 3) in the grid's frame into the counts."""
+        starts, ends, hit, scan = beam_segments(scans, poses, self.model)
+        if len(starts) == 0:
+            return self
+        points = np.vstack([starts, ends])
+        # the lattice cells the beams reach, plus the margin: (row, col) from, to (exclusive)
+        lo = np.floor(points.min(axis=0)[::-1] / self.resolution) - self.margin
+        hi = np.floor(points.max(axis=0)[::-1] / self.resolution) + 1 + self.margin
+        if self._hits.size:
+            lo, hi = np.minimum(lo, self._offset), np.maximum(hi, self._offset + self._hits.shape)
+        span = hi - lo
+        if span[0] * span[1] > MAX_GRID_CELLS or np.abs(lo).max() > MAX_GRID_CELLS:
+            raise InvalidOptionError(f"the beams span {span[1]:.0f} x {span[0]:.0f} cells at {self.resolution} m, "
+                                     f"more than {MAX_GRID_CELLS}, or lie that many cells from the origin: a coarser "
+                                     f"resolution, shorter rays (SensorModel.max_ray_length) or fewer scans")
+        lo = lo.astype(np.int64)
+        shape = tuple(int(n) for n in span)
+        if shape != self._hits.shape or np.any(lo != self._offset):
+            hits, misses = np.zeros(shape, dtype=np.int32), np.zeros(shape, dtype=np.int32)
+            r, c = (int(n) for n in self._offset - lo)
+            h, w = self._hits.shape
+            hits[r:r + h, c:c + w], misses[r:r + h, c:c + w] = self._hits, self._misses
+            self._hits, self._misses, self._offset = hits, misses, lo
+        count_traversals(starts, ends, hit, tuple(self._offset), self.resolution, shape, self.engine, scan,
+                         out=(self._hits, self._misses))
+        return self
+
+    def grid(self) -> GridMap:
+        """The occupancy grid of the scans added so far (``scans_to_grid``)."""
+        if self._hits.size == 0:
+            raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
+        model, hits, misses = self.model, self._hits, self._misses
+        # 1 / (1 + exp(-clip(hit * hits + miss * misses))) on the cells a beam reached only (a fifth
+        # of a laser submap's canvas: 0.56 of the time over the whole canvas, bit for bit the same),
+        # in place (fresh arrays cost page faults)
+        known = (hits | misses) != 0
+        p = model.hit * hits[known]
+        p += model.miss * misses[known]
+        np.clip(p, -model.clamp, model.clamp, out=p)
+        np.negative(p, out=p)
+        np.exp(p, out=p)
+        p += 1.0
+        np.divide(1.0, p, out=p)
+        prob = np.full(hits.shape, np.nan)
+        prob[known] = p
+        # the corner on the lattice: the same float as (floor(x / resolution) - margin) * resolution
+        corner = self._offset[::-1].astype(np.float64) * self.resolution
+        return _trusted(prob, self.resolution, (float(corner[0]), float(corner[1]), 0.0))   # in (0, 1) or NaN
 
 
 def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel = SensorModel(),
@@ -187,30 +258,4 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
         Unknown cells added on each side.
     engine : "taichi" (one parallel launch for all beams) or "numpy" (the reference).
     """
-    if not np.isfinite(resolution) or resolution <= 0.0:
-        raise InvalidOptionError(f"resolution must be finite and > 0; got {resolution!r}")
-    starts, ends, hit, scan = beam_segments(scans, poses, model)
-    if len(starts) == 0:
-        raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
-    points = np.vstack([starts, ends])
-    lo = (np.floor(points.min(axis=0) / resolution) - margin) * resolution
-    hi = (np.floor(points.max(axis=0) / resolution) + 1 + margin) * resolution
-    cols, rows = np.rint((hi - lo) / resolution).astype(int)
-    if rows * cols > MAX_GRID_CELLS:
-        raise InvalidOptionError(f"the beams span {cols} x {rows} cells at {resolution} m, more than {MAX_GRID_CELLS}: "
-                                 f"a coarser resolution, shorter rays (SensorModel.max_ray_length) or fewer scans")
-    hits, misses = count_traversals(starts, ends, hit, lo, resolution, (rows, cols), engine, scan)
-    # 1 / (1 + exp(-clip(hit * hits + miss * misses))) on the cells a beam reached only (a fifth
-    # of a laser submap's canvas: 0.56 of the time over the whole canvas, bit for bit the same),
-    # in place (fresh arrays cost page faults)
-    known = (hits | misses) != 0
-    p = model.hit * hits[known]
-    p += model.miss * misses[known]
-    np.clip(p, -model.clamp, model.clamp, out=p)
-    np.negative(p, out=p)
-    np.exp(p, out=p)
-    p += 1.0
-    np.divide(1.0, p, out=p)
-    prob = np.full((rows, cols), np.nan)
-    prob[known] = p
-    return _trusted(prob, resolution, (float(lo[0]), float(lo[1]), 0.0))     # in (0, 1) or NaN by construction
+    return BeamCounts(resolution=resolution, model=model, margin=margin, engine=engine).add(scans, poses).grid()

@@ -78,7 +78,7 @@ from ._matcher import Matcher, MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
 from .logs import LaserLog
-from .scans import SensorModel, beam_segments, scans_to_grid
+from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
 
 __all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "scan_accepted"]
 
@@ -267,6 +267,7 @@ class Slam:
         self._scan_matcher = Matcher(self.options.scan_matcher)
         self._scan_model = replace(SCAN_MODEL, max_ray_length=self.options.max_ray_length)
         self._map_model = SensorModel(max_ray_length=self.options.max_ray_length)
+        self._counts = {}
 
     def _odometry_noise(self, gtsam, delta):
         return gtsam.noiseModel.Gaussian.Covariance(self._odometry_covariance(delta))
@@ -307,13 +308,20 @@ class Slam:
 
     def _cast_submap(self, log, submap, est, cast=None):
         """The submap's scans (those with ``cast`` true) cast at their estimates in its frame:
-        (grid, (scans, poses in the frame))."""
+        (grid, (scans, poses in the frame)). Between two optimisations the estimates stay put, so
+        the beam counts of a submap cast before are kept (``_counts``) and only its scans not yet
+        in them are cast: the same grid, bit for bit (``BeamCounts``), as casting them all."""
         scans = submap.scans if cast is None else [j for j in submap.scans if cast[j]]
         origin = inverse(est[submap.key])
         poses = np.array([compose(origin, est[j]) for j in scans])
-        grid = scans_to_grid([log.scans[j] for j in scans], poses, resolution=self.options.resolution,
-                             model=self._map_model)
-        return grid, (scans, poses)
+        counts, added = self._counts.get(submap.index, (None, set()))
+        if counts is None or not added.issubset(scans):
+            counts, added = BeamCounts(resolution=self.options.resolution, model=self._map_model), set()
+            self._counts[submap.index] = (counts, added)
+        new = [i for i, j in enumerate(scans) if j not in added]
+        counts.add([log.scans[scans[i]] for i in new], poses[new])
+        added.update(scans[i] for i in new)
+        return counts.grid(), (scans, poses)
 
     def _member_edge(self, gtsam, graph, submap, k, est):
         """The edge that ties scan ``k`` to the frame of a submap it lies in when no match of ``k``
@@ -365,6 +373,7 @@ class Slam:
         self._open_submap(gtsam, graph, values, keys, submaps, done, 0, n, est, travelled)
         accepted = tried = 0
         loops, scans, match_seconds = [], [], []
+        self._counts = {}                       # submap index -> (BeamCounts, scans counted), since the last optimisation
         target_cast = None                      # (submap, scan, grid): the front end's target as last cast
         for k in range(1, n):
             delta = compose(inverse(odo[k - 1]), odo[k])
@@ -423,6 +432,7 @@ class Slam:
                 seconds["loop closing"] += t1 - t0
                 est[keys] = _optimise(gtsam, graph, values, keys)
                 target_cast = None                       # cast again at the new estimates
+                self._counts = {}
                 castable[:k + 1] = usable[:k + 1]        # the graph has placed every scan so far
                 values = _values(gtsam, est, keys)
                 seconds["optimisation"] += time.perf_counter() - t1

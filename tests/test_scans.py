@@ -14,7 +14,7 @@ from taichi_match import GridMap
 from taichi_match._errors import InvalidOptionError, InvalidPoseError
 from taichi_match._raycast import count_traversals_taichi
 from taichi_match.logs import Scan
-from taichi_match.scans import SensorModel, _cells_of_segment, count_traversals, scans_to_grid, trinary
+from taichi_match.scans import BeamCounts, SensorModel, _cells_of_segment, count_traversals, scans_to_grid, trinary
 
 
 # --- the cell traversal ----------------------------------------------------------------------------
@@ -45,7 +45,7 @@ def reference_cells(segment):
 
 def counts(segments, hit, shape, engine):
     segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
-    return count_traversals(segments[:, :2], segments[:, 2:], np.asarray(hit, dtype=bool), (0.0, 0.0), 1.0,
+    return count_traversals(segments[:, :2], segments[:, 2:], np.asarray(hit, dtype=bool), (0, 0), 1.0,
                             shape, engine)
 
 
@@ -182,12 +182,12 @@ def test_a_beam_does_not_clear_a_return_of_its_own_scan(engine):
     segments = np.array([[0.5, 0.5, 2.5, 0.5], [0.5, 0.5, 4.5, 0.5]])
     hit = np.array([True, True])
     for scan, missed in (([0, 0], 0), ([0, 1], 1), (None, 1)):
-        hits, misses = count_traversals(segments[:, :2], segments[:, 2:], hit, (0.0, 0.0), 1.0, (1, 6), engine,
+        hits, misses = count_traversals(segments[:, :2], segments[:, 2:], hit, (0, 0), 1.0, (1, 6), engine,
                                         None if scan is None else np.array(scan))
         assert hits[0].tolist() == [0, 0, 1, 0, 1, 0]
         assert misses[0].tolist() == [2, 2, missed, 1, 0, 0], scan
     # a beam without a return spares its scan's returns too, and misses its own endpoint's cell
-    hits, misses = count_traversals(segments[:, :2], segments[:, 2:], np.array([True, False]), (0.0, 0.0), 1.0,
+    hits, misses = count_traversals(segments[:, :2], segments[:, 2:], np.array([True, False]), (0, 0), 1.0,
                                     (1, 6), engine, np.array([0, 0]))
     assert misses[0].tolist() == [2, 2, 0, 1, 1, 0]
 
@@ -201,14 +201,14 @@ def test_taichi_own_scan_rule_equals_the_reference():
     end = origin + rng.uniform(1.0, 18.0, scans * beams)[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
     hit = rng.random(scans * beams) < 0.8
     scan = np.repeat(np.arange(scans), beams)
-    want = count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "numpy", scan)
-    got = count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "taichi", scan)
-    plain = count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "taichi")
+    want = count_traversals(origin, end, hit, (0, 0), 1.0, (60, 64), "numpy", scan)
+    got = count_traversals(origin, end, hit, (0, 0), 1.0, (60, 64), "taichi", scan)
+    plain = count_traversals(origin, end, hit, (0, 0), 1.0, (60, 64), "taichi")
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
     assert np.array_equal(got[0], plain[0]) and plain[1].sum() > got[1].sum()    # the rule did skip misses
     with pytest.raises(InvalidOptionError, match="non-decreasing"):
-        count_traversals(origin, end, hit, (0.0, 0.0), 1.0, (60, 64), "taichi", scan[::-1])
+        count_traversals(origin, end, hit, (0, 0), 1.0, (60, 64), "taichi", scan[::-1])
 
 
 def test_taichi_skips_cells_outside_the_grid():
@@ -368,6 +368,42 @@ def test_taichi_and_numpy_grids_are_identical_and_deterministic():
         scans = room_scans(poses)
         assert same_grid(scans_to_grid(scans, poses, resolution=resolution, engine="taichi"),
                          scans_to_grid(scans, poses, resolution=resolution, engine="numpy"))
+
+
+@pytest.mark.parametrize("engine", ["taichi", "numpy"])
+def test_counts_do_not_depend_on_the_arrays_extent(engine):
+    """A beam's cells are found on the lattice: counted into a larger array at another offset,
+    the same counts sit at the same lattice cells (scans of beams from far off the origin, ends
+    on cell corners and lines)."""
+    rng = np.random.default_rng(5)
+    n = 200 if engine == "taichi" else 60
+    start = np.repeat(rng.uniform(100.0, 110.0, (4, 2)), n // 4, axis=0)
+    end = start + rng.uniform(-9.0, 9.0, (n, 2))
+    end[::7] = np.round(end[::7] * 4) / 4                        # on cell corners and lines
+    hit = rng.random(n) < 0.7
+    scan = np.repeat(np.arange(4), n // 4)
+    # lattice cells 182-238 on both axes: the big array holds them all, the small one a part
+    small = count_traversals(start, end, hit, (185, 186), 0.5, (48, 46), engine, scan)
+    big = count_traversals(start, end, hit, (170, 160), 0.5, (90, 100), engine, scan)
+    for s_, b in zip(small, big):
+        np.testing.assert_array_equal(b[15:15 + 48, 26:26 + 46], s_)
+        assert b.sum() > s_.sum() > 0
+
+
+@pytest.mark.parametrize("engine", ["taichi", "numpy"])
+def test_beam_counts_added_scan_by_scan_are_the_grid_of_all_scans(engine):
+    """``BeamCounts`` grown by one scan at a time, in any order of growth, gives ``scans_to_grid``
+    of all of them bit for bit."""
+    poses = np.array([[0.0, 0.0, 0.0], [1.1, 0.4, 0.6], [-1.7, -0.9, 2.5], [0.3, 1.2, -1.9], [2.4, -1.5, 3.0]])
+    scans = room_scans(poses)
+    whole = scans_to_grid(scans, poses, resolution=0.1, engine=engine)
+    for order in ([0, 1, 2, 3, 4], [4, 2, 0, 3, 1]):
+        counts = BeamCounts(resolution=0.1, engine=engine)
+        for k in order:
+            counts.add([scans[k]], poses[k:k + 1])
+        assert same_grid(counts.grid(), whole)
+    with pytest.raises(InvalidOptionError, match="no usable beam"):
+        BeamCounts().grid()
 
 
 def test_beams_without_a_return_are_free_up_to_no_return_length():
