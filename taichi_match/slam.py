@@ -44,7 +44,7 @@ are not matched). The earlier submap is matched as cast at the current estimates
 has moved one of its scans in its frame by more than ``RECAST_CELLS`` or ``RECAST_RAD`` since it
 was last cast (later loop closures straighten old submaps), it is cast again first, so that the
 match sees the submap the graph now believes in and the edge's frame is the frame's current
-estimate (bench/SLAM.md against the revision before, median ATE over five runs per log: orebro
+estimate (bench/SLAM.md at 450a9e0 against the revision before, median ATE over five runs per log: orebro
 0.175 -> 0.118 m, edmonton 0.169 -> 0.161, fhw 0.147 -> 0.143, freiburg-101 0.064 -> 0.059, the
 others within 0.006 m; no aces run derailed, one in five did; the simulated run's loop closures
 wrong against its truth 17 of 133 -> 11 of 140; casting every candidate again instead was worse
