@@ -1,0 +1,162 @@
+"""The search without a guess (``taichi_match._search``) against brute force over its lattice and
+against synthetic ground truth."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from taichi_match import GridMap
+from taichi_match._grid import trinary
+from taichi_match._search import SearchOptions, _Lattice, _points, lattice_cells, search
+from taichi_match._se2 import transform_points, wrap_angle
+from taichi_match.scenes import corridor
+
+from conftest import rasterize, room_scene
+
+
+def room_pair(pose, resolution=0.2):
+    """A: the room of ``conftest.room_scene``; B: a 6 x 5 m part of it seen from ``pose``."""
+    a = rasterize(room_scene, (int(9 / resolution), int(7 / resolution)), resolution, (-4.5, -3.5))
+    b = rasterize(room_scene, (int(5 / resolution), int(6 / resolution)), resolution, (-3.0, -2.5), pose)
+    return a, b
+
+
+def brute_force(a, b, guess=None, options=None):
+    """Every pose of the search's lattice scored in plain NumPy: (scores (K, rows, cols), lattice)."""
+    options = options or SearchOptions()
+    a, b = trinary(a), trinary(b)
+    walls, free = _points(b)
+    centre = walls.mean(axis=0)
+    radius = float(np.sqrt(((np.concatenate([walls, free]) - centre) ** 2).sum(axis=1).max()))
+    lattice = _Lattice(a, centre, radius, options, None if guess is None else np.asarray(guess, float))
+    # the score's values on A, computed here from its definition
+    known, on_wall = ~np.isnan(a.prob), a.prob >= 0.5
+    d = ndimage.distance_transform_edt(~on_wall) * a.resolution
+    blur = options.blur or max(0.1, 2 * a.resolution)
+    hi = np.exp(-0.5 * (d / blur) ** 2)
+    v = np.where(known, 2 * hi - 1, hi)
+    w = np.where(on_wall, -1.0, 0.0)
+    (r0, c0), (r1, c1) = lattice.lo, lattice.hi
+    scores = np.zeros((len(lattice.thetas), r1 - r0, c1 - c0))
+    for k, theta in enumerate(lattice.thetas):
+        for values, points in ((v, walls), (w, free)):
+            q = lattice_cells(a, points, centre, theta)
+            # a padded copy, so that every shifted window is a slice
+            pad = int(np.abs(q).max()) + int(np.abs(np.concatenate([lattice.lo, lattice.hi])).max()) + 2
+            canvas = np.zeros((values.shape[0] + 2 * pad, values.shape[1] + 2 * pad))
+            canvas[pad:pad + values.shape[0], pad:pad + values.shape[1]] = values
+            for qr, qc in q:
+                scores[k] += canvas[pad + qr + r0:pad + qr + r1, pad + qc + c0:pad + qc + c1]
+    return scores, lattice
+
+
+@pytest.mark.parametrize("engine", ["taichi", "numpy"])
+@pytest.mark.parametrize("guess, window", [(None, None), ((0.3, -0.2, 0.5), (1.0, 0.3))])
+def test_the_best_pose_is_the_brute_force_maximum_over_the_lattice(engine, guess, window):
+    a, b = room_pair((0.4, -0.3, 0.6))
+    options = SearchOptions(window=window)
+    result = search(a, b, guess, options, engine=engine)
+    scores, lattice = brute_force(a, b, guess, options)
+    k, r, c = np.unravel_index(np.argmax(scores), scores.shape)
+    best = scores[k, r, c]
+    assert result.hypotheses[0].score == pytest.approx(best, rel=1e-6)   # A's values in float32
+    second = np.partition(scores.ravel(), -2)[-2]
+    if best - second > 1e-4:               # a unique maximum: the same pose
+        expected = lattice.poses(k, np.array([r + lattice.lo[0]]), np.array([c + lattice.lo[1]]))[0]
+        np.testing.assert_allclose(result.hypotheses[0].pose, expected, atol=1e-9)
+    assert result.lattice_size == scores.size
+    assert result.nodes <= scores.size and (window is not None or result.nodes < scores.size / 5)
+
+
+def test_the_runner_up_is_the_best_pose_apart_from_the_best():
+    a, b = room_pair((0.4, -0.3, 0.6))
+    options = SearchOptions()
+    result = search(a, b, None, options)
+    scores, lattice = brute_force(a, b, None, options)
+    best = result.hypotheses[0].pose
+    k, r, c = np.meshgrid(*(np.arange(n) for n in scores.shape), indexing="ij")
+    # c's landing point and the angle of every lattice pose against the best's
+    best_k = int(np.argmin(np.abs(wrap_angle(lattice.thetas - best[2]))))
+    best_landing = best[:2] + np.array([[math.cos(best[2]), -math.sin(best[2])],
+                                        [math.sin(best[2]), math.cos(best[2])]]) @ lattice.centre
+    best_row, best_col = (math.floor(v + 1e-9) for v in a.grid_coordinates(best_landing))
+    metres, radians = options.separation
+    near = ((np.abs(r + lattice.lo[0] - best_row) * a.resolution <= metres)
+            & (np.abs(c + lattice.lo[1] - best_col) * a.resolution <= metres)
+            & (np.abs(wrap_angle(lattice.thetas[k] - lattice.thetas[best_k])) <= radians))
+    runner_up = scores[~near].max()
+    if runner_up >= 0.5 * result.hypotheses[0].score:
+        assert len(result.hypotheses) >= 2
+        assert result.hypotheses[1].score == pytest.approx(runner_up, rel=1e-6)
+    else:
+        assert len(result.hypotheses) == 1
+
+
+@pytest.mark.parametrize("theta", [0.0, 2.0, -2.9])
+def test_finds_the_room_from_any_angle_without_a_guess(theta):
+    truth = np.array([0.4, -0.3, theta])
+    a, b = room_pair(truth, resolution=0.1)
+    result = search(a, b)
+    pose = result.hypotheses[0].pose
+    # within a lattice step: one cell for c and one angle step (B turns about its walls' centroid)
+    assert abs(wrap_angle(pose[2] - theta)) <= result.rotation_step
+    walls, _ = _points(trinary(b))
+    moved = transform_points(pose, walls) - transform_points(truth, walls)
+    assert np.sqrt((moved ** 2).sum(axis=1)).max() <= 3 * a.resolution
+
+
+def test_pushing_b_off_a_scores_nothing():
+    a, b = room_pair((0.4, -0.3, 0.6))
+    far = search(a, b, (40.0, 0.0, 0.0), SearchOptions(window=(0.0, 0.0)))
+    assert far.hypotheses[0].score == 0.0
+    walls, _ = _points(trinary(b))
+    assert search(a, b).hypotheses[0].score > 0.25 * len(walls)
+
+
+def test_corridor_any_x_along_it():
+    a = corridor(size=8.0, resolution=0.05)
+    truth = (1.3, 0.4, 0.0)
+    b = rasterize(lambda x, y: np.where(np.abs(y) < 3.0, 0.0, np.where(np.abs(y) < 3.05, 1.0, np.nan)),
+                  (140, 60), 0.05, (-1.5, -3.5), truth)
+    result = search(a, b)
+    pose = result.hypotheses[0].pose
+    # along the corridor any x explains B; across it and in angle (up to the half turn that
+    # swaps its walls) only the truth
+    angle = abs(wrap_angle(pose[2] - truth[2]))
+    assert min(angle, math.pi - angle) <= result.rotation_step
+    walls, _ = _points(trinary(b))
+    ys = transform_points(pose, walls)[:, 1]
+    assert np.all(np.abs(np.abs(ys) - 3.025) <= 0.1)
+    # and the search says so: a runner-up elsewhere along the corridor scores (almost) as much
+    assert len(result.hypotheses) >= 2 and result.hypotheses[1].score >= 0.9 * result.hypotheses[0].score
+
+
+def test_lattice_cells_are_where_the_pose_puts_the_points():
+    a, b = room_pair((0.4, -0.3, 0.6))
+    walls, _ = _points(trinary(b))
+    centre = walls.mean(axis=0)
+    lattice = _Lattice(trinary(a), centre, 6.0, SearchOptions(), None)
+    k, row, col = 37, 5, -3
+    pose = lattice.poses(k, np.array([row]), np.array([col]))[0]
+    rows, cols = a.cell_of(transform_points(pose, walls))
+    q = lattice_cells(a, walls, centre, lattice.thetas[k])
+    same = (rows == q[:, 0] + row) & (cols == q[:, 1] + col)
+    assert same.mean() >= 0.99                         # the rest sit on a cell boundary
+    assert np.abs(rows - q[:, 0] - row).max() <= 1 and np.abs(cols - q[:, 1] - col).max() <= 1
+
+
+def test_bad_input_is_refused():
+    from taichi_match import InvalidMapError, InvalidOptionError
+
+    a, b = room_pair((0.4, -0.3, 0.6))
+    empty = GridMap(np.zeros((10, 10)), 0.2)
+    with pytest.raises(InvalidMapError):
+        search(a, empty)
+    with pytest.raises(InvalidOptionError):
+        search(a, b, None, SearchOptions(window=(1.0, 0.1)))
+    with pytest.raises(InvalidOptionError):
+        search(a, b, (0, 0, 0), SearchOptions(window=(-1.0, 0.1)))
+    with pytest.raises(InvalidOptionError):
+        search(a, b, None, SearchOptions(blur=float("nan")))
