@@ -17,10 +17,12 @@ from ._errors import (EngineError, InvalidMapError, InvalidOptionError, InvalidP
 from ._grid import GridMap
 from ._matcher import CALIBRATED_COVARIANCE_SCALE, Matcher, MatchOptions, MatchResult, match
 from ._prepared import PreparedMap, make_engine
+from ._search import Hypothesis
 from ._se2 import as_poses, compose, inverse, transform_points, wrap_angle
 
 __all__ = [
-    "GridMap", "discrepancy", "match", "Matcher", "MatchOptions", "MatchResult", "Status", "CALIBRATED_COVARIANCE_SCALE",
+    "GridMap", "discrepancy", "match", "Matcher", "MatchOptions", "MatchResult", "Hypothesis", "Status",
+    "CALIBRATED_COVARIANCE_SCALE",
     "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
     "MapFileError", "MapFormatError", "LogFileError", "LogFormatError",
     "compose", "inverse", "transform_points", "wrap_angle",

@@ -26,6 +26,7 @@ from ._grid import GridMap
 from ._kernels import check_not_forked
 from ._newton import minimize_newton
 from ._prepared import ENGINES, PreparedMap, make_engine
+from ._search import SearchOptions, search
 from ._se2 import as_pose, wrap_angle
 from ._verdict import Evidence, compare_walls, evidence, placed_walls
 
@@ -203,6 +204,15 @@ class MatchOptions:
         return np.array([eps, eps, eps_theta])
 
 
+# After a search, a distinct runner-up scoring at least this times the best makes the match
+# ambiguous (not accepted). Runner-ups are exact above ``_search.RUNNER_UP_FRACTION`` (0.8).
+AMBIGUITY = 0.9
+
+
+def _ambiguous(hypotheses) -> bool:
+    return len(hypotheses) > 1 and hypotheses[1].score >= AMBIGUITY * hypotheses[0].score
+
+
 def _with(options, overrides):
     """``options`` with ``overrides`` applied; unknown names raise InvalidOptionError."""
     if not overrides:
@@ -244,6 +254,11 @@ class MatchResult:
         optimiser stopped at a minimum). ``evidence`` holds what it rests on: walls compared, the
         share of walls meeting the other map's walls, the share landing on its free space, and
         the largest standard deviation outside degenerate directions (``taichi_match._verdict``).
+        After a search, also False when a distinct runner-up scores at least ``AMBIGUITY`` times
+        the best: the maps fit two ways (a corridor, a symmetric room).
+    hypotheses : after a search (no initial pose, or ``search_window``), its distinct lattice
+        poses with their scores (``_search.Hypothesis``), best first; the best was refined into
+        ``pose``. Empty without a search.
     """
 
     pose: np.ndarray
@@ -267,6 +282,7 @@ class MatchResult:
     covariance_floor: np.ndarray
     residual: float
     options: MatchOptions = field(repr=False)
+    hypotheses: tuple = ()
 
     @property
     def calibrated_covariance(self):
@@ -333,10 +349,22 @@ class Matcher:
                 prepared = per_map.setdefault(key, prepared)
         return prepared
 
-    def match(self, a: GridMap, b: GridMap, initial_pose, **overrides) -> MatchResult:
-        """Find r_A2B near ``initial_pose`` minimising h (eq. 8-9); see ``match``."""
+    def match(self, a: GridMap, b: GridMap, initial_pose=None, *, search_window=None, **overrides) -> MatchResult:
+        """Find r_A2B near ``initial_pose`` minimising h (eq. 8-9), after a search without it or
+        within ``search_window``; see ``match``."""
         start = time.perf_counter()
         opts = _with(self.options, overrides)
+        hypotheses = ()
+        if initial_pose is None or search_window is not None:
+            for name, grid in (("a", a), ("b", b)):
+                if not isinstance(grid, GridMap):
+                    raise InvalidMapError(f"{name} must be a GridMap; got {type(grid).__name__}")
+            guess = None if initial_pose is None else as_pose(initial_pose, "initial_pose")
+            if search_window is not None and guess is None:
+                raise InvalidOptionError("search_window needs an initial_pose to search around")
+            found = search(a, b, guess, SearchOptions(window=search_window), engine=opts.engine)
+            hypotheses = tuple(found.hypotheses)
+            initial_pose = hypotheses[0].pose
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
         prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence)
@@ -369,8 +397,8 @@ class Matcher:
             cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
             initial_pose=r0, iterations=nit, evaluations=counter.poses, launches=counter.launches,
             converged=status.converged, status=status, message=MESSAGES[status],
-            seconds=time.perf_counter() - start, accepted=proof.accepts(status.converged), evidence=proof,
-            covariance_floor=floor, residual=residual, options=opts)
+            seconds=time.perf_counter() - start, accepted=proof.accepts(status.converged) and not _ambiguous(hypotheses),
+            evidence=proof, covariance_floor=floor, residual=residual, options=opts, hypotheses=hypotheses)
 
     @staticmethod
     def _newton_levels(prep_a, prep_b, opts, r0, full_weight, counter):
@@ -563,9 +591,13 @@ class _LevelCost:
 _DEFAULT = {}
 
 
-def match(a: GridMap, b: GridMap, initial_pose, **options) -> MatchResult:
+def match(a: GridMap, b: GridMap, initial_pose=None, *, search_window=None, **options) -> MatchResult:
     """Find the pose r_A2B of map B in map A near ``initial_pose`` (the paper's method).
 
+    Without ``initial_pose`` a search over every relative pose where the maps overlap finds one
+    first (``_search``, a branch and bound over a lattice of poses at 0.2 m); with
+    ``search_window=(metres, radians)`` a search within that window around ``initial_pose``. The
+    best pose found is refined; ``hypotheses`` lists it with the distinct runner-ups.
     ``options`` are fields of ``MatchOptions`` (blur, prior_weight, rotation_scale, step, ...).
     Non-convergence and a missing overlap are reported in the result (``converged``, ``status``,
     ``message``), not raised. For many matches, reuse a ``Matcher``.
@@ -573,4 +605,4 @@ def match(a: GridMap, b: GridMap, initial_pose, **options) -> MatchResult:
     matcher = _DEFAULT.get("matcher")
     if matcher is None:
         matcher = _DEFAULT.setdefault("matcher", Matcher())
-    return matcher.match(a, b, initial_pose, **options)
+    return matcher.match(a, b, initial_pose, search_window=search_window, **options)

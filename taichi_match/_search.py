@@ -31,14 +31,16 @@ on the corners of A's cells. A point p of B then lands in cell ``t + q_k(p)`` of
 c's cell and ``q_k(p) = floor(G R(theta_k) (p - c))`` (G: A's frame to grid coordinates), computed
 once per angle in float64 NumPy: the lattice's definition, shared by the kernel and the tests.
 
-**The bounds.** A node is one angle and a square of 2^L x 2^L translations. For each wall, its
-best value over the square is at most ``P_L(t + q)``, A's ``v`` max-pooled over the square of
-cells starting at ``t + q``; the free cells' terms are <= 0 and are dropped. So the node's bound
-is one lookup per wall, the same work as one pose. Best-first in batches: the ``BATCH`` nodes of
-highest bound are split into their children, all evaluated in one launch (leaves with the full
-score), and nodes whose bound cannot beat the threshold are dropped. The threshold is the
-``HYPOTHESES``-th best distinct leaf found so far, or ``RUNNER_UP_FRACTION`` of the best when
-higher: the best pose is exact, and the runner-ups are exact above that fraction of its score.
+**The bounds.** A node is ``_Tree.angles[L]`` consecutive angles and a square of 2^L x 2^L
+translations. Each wall of B lies, at the node's angles, within ``_Tree.spread[L]`` cells of where
+it lies at the middle one, so its value over the node is at most the maximum of v_A over a square
+of 2^L + 2 spread cells (``window_max``: Cartographer's precomputed grids, widened for the angles);
+the free cells' terms are <= 0 and are dropped. So a node's bound is one lookup per wall, the work
+of one pose. Best-first in batches: the ``BATCH`` nodes of highest bound are split into their
+children, all evaluated in one launch (leaves with the full score), and nodes whose bound cannot
+beat the threshold are dropped. The threshold is the ``HYPOTHESES``-th best distinct leaf found so
+far, or ``RUNNER_UP_FRACTION`` of the best when higher: the best pose is exact, and the runner-ups
+are exact above that fraction of its score.
 """
 
 import dataclasses
@@ -49,17 +51,19 @@ from scipy import ndimage
 
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap, trinary
+from ._pyramid import coarsen
 from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
 from ._se2 import wrap_angle
 
-__all__ = ["SearchOptions", "Hypothesis", "SearchResult", "search", "lattice_cells", "score_grids"]
+__all__ = ["SearchOptions", "Hypothesis", "SearchResult", "search", "lattice_cells", "score_values", "window_max"]
 
 CLEAR_CELLS = 2.0          # free cells of B nearer its walls than this (cells) are not scored
 HYPOTHESES = 3             # distinct hypotheses kept (the best and its runner-ups)
-RUNNER_UP_FRACTION = 0.5   # runner-ups are exact above this fraction of the best's score
-BATCH = 512                # nodes split per launch
+RUNNER_UP_FRACTION = 0.8   # runner-ups are exact above this fraction of the best's score
+BATCH = 2048               # nodes split per launch (512: 1.35x the time on laser submaps, 8192: 1.05x)
 MAX_LEVEL = 7              # the coarsest node: 128 x 128 translations
 SMALL_LATTICE = 4096       # lattices of at most this many poses are scored whole (no tree)
+DEFAULT_RESOLUTION = 0.2   # metres
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,12 +76,18 @@ class SearchOptions:
     separation : (metres, radians): lattice poses closer than this in both (c's position, angle)
         are the same hypothesis.
     rotation_step : the lattice's angle step; None: the farthest point of B moves one cell of A.
+    resolution : the cell side the search runs at, metres: both maps are coarsened by a power of
+        two to about it (walls kept: a coarse cell holding a wall is one, ``_pyramid.coarsen``
+        "max"); None: ``DEFAULT_RESOLUTION`` or the maps' own if coarser. The lattice, and with
+        it the search's work, shrinks with its cube (translations squared, angles); the local
+        matcher then refines the best pose on the given maps.
     """
 
     window: tuple = None
     blur: float = None
     separation: tuple = (0.5, math.radians(10.0))
     rotation_step: float = None
+    resolution: float = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,33 +105,46 @@ class SearchResult:
     hypotheses: list
     nodes: int              # lattice nodes scored (bounds and leaves)
     lattice_size: int       # poses in the lattice (what brute force would score)
-    rotation_step: float
+    rotation_step: float    # the lattice's angle step, radians
+    resolution: float       # the cell side it searched at, metres (its translation step)
 
 
-def score_grids(a: GridMap, blur: float, levels: int):
-    """A's values as the score reads them: (pooled (levels + 1, H + S, W + S) float32, free (H, W)
-    float32, offset S = 2**levels - 1). ``pooled[L][S + i, S + j]`` is the maximum of v_A over
-    the cells (i .. i + 2^L - 1, j .. j + 2^L - 1), 0 off the grid; ``free`` is -1 on A's walls."""
+def score_values(a: GridMap, blur: float):
+    """(v, w): the score's values on A's cells, float32: v for B's walls (2 hi - 1 on known cells,
+    hi on unknown ones), w for B's clear free cells (-1 on A's walls, else 0)."""
     p = a.prob
     known = ~np.isnan(p)
     walls = p >= 0.5                       # False on unknown (NaN) cells
     if walls.any():
         d = ndimage.distance_transform_edt(~walls) * a.resolution
-        hi = np.exp(-0.5 * (d / blur) ** 2) if blur > 0 else walls.astype(np.float64)
+        hi = np.exp(-0.5 * (d / blur) ** 2)
     else:
         hi = np.zeros(p.shape)
     v = np.where(known, 2.0 * hi - 1.0, hi).astype(np.float32)
-    s = 2**levels - 1
-    h, w = p.shape
-    pooled = np.zeros((levels + 1, h + s + 2**levels, w + s + 2**levels), dtype=np.float32)
-    pooled[0, s:s + h, s:s + w] = v
-    for level in range(1, levels + 1):          # max over [x, x + 2^L) from two windows of 2^(L-1)
-        half = 2**(level - 1)
-        prev, cur = pooled[level - 1], pooled[level]
-        np.copyto(cur, prev)
+    return v, np.where(walls, np.float32(-1.0), np.float32(0.0))
+
+
+def window_max(canvas: np.ndarray, sizes) -> list:
+    """For each size w: the grid whose cell x holds the maximum of ``canvas`` over the w x w square
+    of cells starting at x (0 beyond the canvas): from the maxima over 2^k squares (k = floor
+    log2 w) at x and x + w - 2^k on each axis, as a sparse table does."""
+    tables = [canvas]
+    while 2 ** len(tables) <= max(sizes):
+        prev, half = tables[-1], 2 ** (len(tables) - 1)
+        cur = prev.copy()
         np.maximum(cur[:-half], prev[half:], out=cur[:-half])
         np.maximum(cur[:, :-half], cur[:, half:].copy(), out=cur[:, :-half])
-    return pooled, np.where(walls, np.float32(-1.0), np.float32(0.0)), s
+        tables.append(cur)
+    out = []
+    for w in sizes:
+        k = int(math.floor(math.log2(w)))
+        table, d = tables[k], w - 2**k
+        g = table.copy()
+        if d:
+            np.maximum(g[:-d], table[d:], out=g[:-d])
+            np.maximum(g[:, :-d], g[:, d:].copy(), out=g[:, :-d])
+        out.append(g)
+    return out
 
 
 def _points(b: GridMap):
@@ -133,6 +156,13 @@ def _points(b: GridMap):
         clear = ndimage.distance_transform_edt(~walls) >= CLEAR_CELLS
         free &= clear
     return b.cell_centres(*np.nonzero(walls)), b.cell_centres(*np.nonzero(free))
+
+
+def _coarsened(grid: GridMap, resolution: float) -> GridMap:
+    """``grid`` coarsened by the power of two that brings its cells nearest ``resolution`` (never
+    finer than given); a coarse cell is a wall when it holds one."""
+    factor = 2 ** max(int(round(math.log2(resolution / grid.resolution))), 0)
+    return grid if factor == 1 else coarsen(grid, factor, reduce="max")
 
 
 def lattice_cells(a: GridMap, points: np.ndarray, centre: np.ndarray, theta: float) -> np.ndarray:
@@ -196,57 +226,79 @@ def _rotate(theta, v):
 
 
 class _Scorer:
-    """Scores nodes (angle index, level, c's cell) in batches, one launch each (``engine``
-    "taichi"), or in NumPy ("numpy", the same sums in another order)."""
+    """Scores nodes in batches, one launch each (``engine`` "taichi"), or in NumPy ("numpy").
 
-    def __init__(self, a, walls, free, centre, lattice, blur, levels, engine):
-        self.pooled, self.free_grid, self.offset = score_grids(a, blur, levels)
+    Every level's grid lies on one canvas of A's cells, wide enough that no lookup leaves it
+    sideways, so a point's cell is one flat index: the point's offset at its angle (row * width +
+    col, made once per angle) plus the node's base. Lookups before the first row or after the last
+    read 0 (off A: every window there is off A).
+    """
+
+    def __init__(self, a, walls, free, centre, lattice, tree, blur, engine):
         self.walls, self.free, self.centre = walls, free, centre
-        self.a, self.lattice, self.engine = a, lattice, engine
+        self.a, self.lattice, self.tree, self.engine = a, lattice, tree, engine
+        reach = int(math.ceil(float(np.sqrt(((np.concatenate([walls, free]) - centre) ** 2).sum(axis=1).max()))
+                              / a.resolution)) + 2                     # |q| at most, any angle
+        sizes = [2**level + 2 * tree.spread[level] for level in range(tree.levels + 1)]
+        spread = max(tree.spread)
+        h, w = a.shape
+        # rows: every window that touches A; columns: every lookup
+        self._r0 = -max(sizes)
+        self._c0 = min(int(lattice.lo[1]) - reach - spread, -max(sizes))
+        rows = h - self._r0
+        self.width = max(int(lattice.hi[1]) + reach + 1, w) - self._c0
+        if rows * self.width >= 2**31 - 1:
+            raise InvalidMapError(f"the search's canvas ({rows} x {self.width} cells) is too large: search at a "
+                                  f"coarser resolution or within a window")
+        v, free_values = score_values(a, blur)
+        canvas = np.zeros((rows + max(sizes), self.width + max(sizes)), dtype=np.float32)
+        canvas[-self._r0:-self._r0 + h, -self._c0:-self._c0 + w] = v
+        self.grids = [np.ascontiguousarray(g[:rows, :self.width]).ravel() for g in window_max(canvas, sizes)]
+        self.free_grid = np.zeros((rows, self.width), dtype=np.float32)
+        self.free_grid[-self._r0:-self._r0 + h, -self._c0:-self._c0 + w] = free_values
+        self.free_grid = self.free_grid.ravel()
         n = len(lattice.thetas)
-        self.wall_cells = np.zeros((n, max(len(walls), 1), 2), dtype=np.int32)
-        self.free_cells = np.zeros((n, max(len(free), 1), 2), dtype=np.int32)
+        self.wall_offsets = np.zeros((n, max(len(walls), 1)), dtype=np.int32)
+        self.free_offsets = np.zeros((n, max(len(free), 1)), dtype=np.int32)
         self._have = np.zeros((2, n), dtype=bool)
         self.scored = 0
 
-    def _cells(self, ks, leaf):
-        """Fill the angles' cells of the walls (and of the free cells for leaves) when first used."""
-        for kind, points, table in ((0, self.walls, self.wall_cells), (1, self.free, self.free_cells))[:1 + leaf]:
+    def _offsets(self, ks, leaf):
+        """Fill the angles' offsets of the walls (and of the free cells for leaves) when first used."""
+        for kind, points, table in ((0, self.walls, self.wall_offsets), (1, self.free, self.free_offsets))[:1 + leaf]:
             for k in np.unique(ks[~self._have[kind, ks]]):
                 if len(points):
-                    table[k, :len(points)] = lattice_cells(self.a, points, self.centre, self.lattice.thetas[k])
+                    q = lattice_cells(self.a, points, self.centre, self.lattice.thetas[k])
+                    table[k, :len(points)] = q[:, 0] * self.width + q[:, 1]
                 self._have[kind, k] = True
 
-    def __call__(self, level, nodes, leaf):
-        """(N,) float64 sums over B's walls of pooled level ``level`` at nodes (N, 3) int32
-        (angle, c's row, c's col), and with ``leaf`` of its free cells on A's walls."""
+    def __call__(self, level, nodes):
+        """(N,) float64: nodes (N, 3) int32 (first angle, c's row, c's col) of ``level`` scored
+        (level 0) or bounded: their middle angle's walls on that level's grid, from ``spread``
+        cells before (``_Tree``), and at level 0 the free cells on A's walls."""
         self.scored += len(nodes)
-        self._cells(nodes[:, 0], leaf)
-        n_walls, n_free = len(self.walls), len(self.free) if leaf else 0
+        tree, leaf = self.tree, level == 0
+        k = nodes[:, 0] + np.minimum(tree.angles[level], len(self.lattice.thetas) - nodes[:, 0]) // 2
+        spread = tree.spread[level]
+        base = (nodes[:, 1] - spread - self._r0) * self.width + (nodes[:, 2] - spread - self._c0)
+        probes = np.ascontiguousarray(np.stack([k, base], axis=1), dtype=np.int32)
+        self._offsets(probes[:, 0], leaf)
+        sizes = np.array([len(self.walls), len(self.free) if leaf else 0], dtype=np.int32)
         if self.engine == "numpy":
-            return self._numpy(level, nodes, n_walls, n_free)
+            return self._numpy(self.grids[level], probes, sizes)
         out = np.empty(len(nodes), dtype=np.float64)
-        sizes = np.array([n_walls, n_free, self.offset], dtype=np.int32)
         with kernel_lock():
-            kernel = _kernel()
-            _launch(kernel, (self.wall_cells, self.free_cells, sizes, self.pooled[level], self.free_grid,
-                             np.ascontiguousarray(nodes, dtype=np.int32), out), None)
+            _launch(_kernel(), (self.wall_offsets, self.free_offsets, sizes, self.grids[level], self.free_grid,
+                                probes, out), None)
         return out
 
-    def _numpy(self, level, nodes, n_walls, n_free):
-        out = np.zeros(len(nodes), dtype=np.float64)
-        s = self.offset
-        grid = self.pooled[level]
-        for m, (k, row, col) in enumerate(nodes):
-            q = self.wall_cells[k, :n_walls] + (row + s, col + s)
-            inside = (q >= 0).all(axis=1) & (q[:, 0] < grid.shape[0]) & (q[:, 1] < grid.shape[1])
-            total = grid[q[inside, 0], q[inside, 1]].astype(np.float64).sum()
-            if n_free:
-                f = self.free_cells[k, :n_free] + (row, col)
-                h, w = self.free_grid.shape
-                inside = (f >= 0).all(axis=1) & (f[:, 0] < h) & (f[:, 1] < w)
-                total += self.free_grid[f[inside, 0], f[inside, 1]].astype(np.float64).sum()
-            out[m] = total
+    def _numpy(self, grid, probes, sizes):
+        out = np.zeros(len(probes), dtype=np.float64)
+        for m, (k, base) in enumerate(probes):
+            for offsets, n, values in ((self.wall_offsets, sizes[0], grid), (self.free_offsets, sizes[1], self.free_grid)):
+                idx = offsets[k, :n].astype(np.int64) + base
+                idx = idx[(idx >= 0) & (idx < len(values))]
+                out[m] += values[idx].astype(np.float64).sum()
         return out
 
 
@@ -262,28 +314,23 @@ def _kernel():
 
 def _build(ti):
     @ti.kernel
-    def score(wall_cells: ti.types.ndarray(dtype=ti.i32, ndim=3), free_cells: ti.types.ndarray(dtype=ti.i32, ndim=3),
-              sizes: ti.types.ndarray(dtype=ti.i32, ndim=1), pooled: ti.types.ndarray(dtype=ti.f32, ndim=2),
-              free: ti.types.ndarray(dtype=ti.f32, ndim=2), nodes: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    def score(wall_offsets: ti.types.ndarray(dtype=ti.i32, ndim=2), free_offsets: ti.types.ndarray(dtype=ti.i32, ndim=2),
+              sizes: ti.types.ndarray(dtype=ti.i32, ndim=1), grid: ti.types.ndarray(dtype=ti.f32, ndim=1),
+              free: ti.types.ndarray(dtype=ti.f32, ndim=1), probes: ti.types.ndarray(dtype=ti.i32, ndim=2),
               out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
-        n_walls, n_free, s = sizes[0], sizes[1], sizes[2]
-        h, w = pooled.shape[0], pooled.shape[1]
-        fh, fw = free.shape[0], free.shape[1]
-        for m in range(nodes.shape[0]):                     # a node per work item, its points in order
-            k, row, col = nodes[m, 0], nodes[m, 1], nodes[m, 2]
+        n_walls, n_free = sizes[0], sizes[1]
+        size = ti.cast(grid.shape[0], ti.u32)
+        for m in range(probes.shape[0]):                    # a node per work item, its points in order
+            k, base = probes[m, 0], probes[m, 1]
             total = ti.f64(0.0)
             for p in range(n_walls):
-                i = wall_cells[k, p, 0] + row + s
-                j = wall_cells[k, p, 1] + col + s
-                inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
-                total += ti.select(inside, ti.cast(pooled[ti.min(ti.max(i, 0), h - 1), ti.min(ti.max(j, 0), w - 1)],
-                                                   ti.f64), 0.0)
+                i = wall_offsets[k, p] + base
+                inside = ti.cast(i, ti.u32) < size
+                total += ti.select(inside, ti.cast(grid[ti.select(inside, i, 0)], ti.f64), 0.0)
             for p in range(n_free):
-                i = free_cells[k, p, 0] + row
-                j = free_cells[k, p, 1] + col
-                inside = (i >= 0) & (i < fh) & (j >= 0) & (j < fw)
-                total += ti.select(inside, ti.cast(free[ti.min(ti.max(i, 0), fh - 1), ti.min(ti.max(j, 0), fw - 1)],
-                                                   ti.f64), 0.0)
+                i = free_offsets[k, p] + base
+                inside = ti.cast(i, ti.u32) < size
+                total += ti.select(inside, ti.cast(free[ti.select(inside, i, 0)], ti.f64), 0.0)
             out[m] = total
 
     return score
@@ -307,7 +354,10 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
         raise InvalidOptionError(f"blur must be in (0, 1e3] metres or None; got {opts.blur!r}")
     if engine not in ("taichi", "numpy"):
         raise InvalidOptionError(f"engine must be 'taichi' or 'numpy'; got {engine!r}")
-    a, b = trinary(a), trinary(b)
+    if opts.resolution is not None and not (0.0 < opts.resolution <= 1e3):
+        raise InvalidOptionError(f"resolution must be in (0, 1e3] metres or None; got {opts.resolution!r}")
+    target = DEFAULT_RESOLUTION if opts.resolution is None else opts.resolution
+    a, b = _coarsened(trinary(a), target), _coarsened(trinary(b), target)
     walls, free = _points(b)
     if len(walls) == 0:
         raise InvalidMapError("B has no occupied cell: nothing to search with")
@@ -322,20 +372,20 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
         levels = 0
     wall_radius = float(np.sqrt(((walls - centre) ** 2).sum(axis=1).max()))
     tree = _Tree(levels, lattice.step * wall_radius / a.resolution)
-    blur = max(0.1, 2.0 * a.resolution) if opts.blur is None else opts.blur
-    scorer = _Scorer(a, walls, free, centre, lattice, blur, levels + 1, engine)
+    blur = max(0.1, a.resolution) if opts.blur is None else opts.blur
+    scorer = _Scorer(a, walls, free, centre, lattice, tree, blur, engine)
     leaves = _branch_and_bound(scorer, lattice, tree, opts)
     hypotheses = [Hypothesis(pose, float(score)) for pose, score in leaves]
-    return SearchResult(hypotheses, scorer.scored, lattice.size, lattice.step)
+    return SearchResult(hypotheses, scorer.scored, lattice.size, lattice.step, a.resolution)
 
 
 class _Tree:
     """The nodes' shape per level L: 2^L x 2^L translations and ``angles[L]`` consecutive angles.
 
-    A node of several angles is bounded from its middle angle: every point of B lies within
+    A node of several angles is bounded from its middle angle: every wall of B lies within
     ``spread[L]`` cells (per axis) of where it lies at that angle, so the node's cells are those
-    of the middle angle's node widened by ``spread[L]`` on each side, which the pooled grid of
-    level L + 1 covers from ``spread[L]`` cells before (its window is 2^(L+1) >= 2^L + 2 spread).
+    of the middle angle's node widened by ``spread[L]`` on each side. A level takes twice the
+    angles of the one below while that widening stays within half its translations.
     """
 
     def __init__(self, levels, ratio):
@@ -349,10 +399,6 @@ class _Tree:
                 n, spread = self.angles[-1], self.spread[-1]
             self.angles.append(n)
             self.spread.append(spread if n > 1 else 0)
-
-    def grid_level(self, level):
-        """The pooled level a node's bound reads."""
-        return level + 1 if self.angles[level] > 1 else level
 
     def top(self, lattice):
         """(k_first, row, col) of the coarsest nodes, covering the lattice."""
@@ -373,20 +419,12 @@ class _Tree:
         inside = (children[:, 0] < len(lattice.thetas)) & (children[:, 1] < lattice.hi[0]) & (children[:, 2] < lattice.hi[1])
         return children[inside]
 
-    def probes(self, nodes, level, n_angles):
-        """The nodes as the scorer reads them: (middle angle, row - spread, col - spread)."""
-        k = nodes[:, 0]
-        middle = k + np.minimum(self.angles[level], n_angles - k) // 2
-        spread = self.spread[level]
-        return np.stack([middle, nodes[:, 1] - spread, nodes[:, 2] - spread], axis=1).astype(np.int32)
-
 
 def _branch_and_bound(scorer, lattice, tree, opts):
     """Best-first branch and bound; returns [(pose, score)] of the distinct hypotheses, best first."""
-    levels, n_angles = tree.levels, len(lattice.thetas)
+    levels = tree.levels
 
-    def evaluate(level, nodes):
-        return scorer(tree.grid_level(level), tree.probes(nodes, level, n_angles), leaf=level == 0)
+    evaluate = scorer
 
     nodes = tree.top(lattice)
     bounds = evaluate(levels, nodes)

@@ -34,7 +34,7 @@ def brute_force(a, b, guess=None, options=None):
     # the score's values on A, computed here from its definition
     known, on_wall = ~np.isnan(a.prob), a.prob >= 0.5
     d = ndimage.distance_transform_edt(~on_wall) * a.resolution
-    blur = options.blur or max(0.1, 2 * a.resolution)
+    blur = options.blur or max(0.1, a.resolution)
     hi = np.exp(-0.5 * (d / blur) ** 2)
     v = np.where(known, 2 * hi - 1, hi)
     w = np.where(on_wall, -1.0, 0.0)
@@ -98,7 +98,7 @@ def test_the_runner_up_is_the_best_pose_apart_from_the_best():
 def test_finds_the_room_from_any_angle_without_a_guess(theta):
     truth = np.array([0.4, -0.3, theta])
     a, b = room_pair(truth, resolution=0.1)
-    result = search(a, b)
+    result = search(a, b, None, SearchOptions(resolution=0.1))
     pose = result.hypotheses[0].pose
     # within a lattice step: one cell for c and one angle step (B turns about its walls' centroid)
     assert abs(wrap_angle(pose[2] - theta)) <= result.rotation_step
@@ -120,7 +120,7 @@ def test_corridor_any_x_along_it():
     truth = (1.3, 0.4, 0.0)
     b = rasterize(lambda x, y: np.where(np.abs(y) < 3.0, 0.0, np.where(np.abs(y) < 3.05, 1.0, np.nan)),
                   (140, 60), 0.05, (-1.5, -3.5), truth)
-    result = search(a, b)
+    result = search(a, b, None, SearchOptions(resolution=0.05))
     pose = result.hypotheses[0].pose
     # along the corridor any x explains B; across it and in angle (up to the half turn that
     # swaps its walls) only the truth
@@ -160,3 +160,48 @@ def test_bad_input_is_refused():
         search(a, b, (0, 0, 0), SearchOptions(window=(-1.0, 0.1)))
     with pytest.raises(InvalidOptionError):
         search(a, b, None, SearchOptions(blur=float("nan")))
+
+
+def test_match_without_a_guess_finds_and_refines_the_room():
+    import taichi_match as tm
+
+    truth = np.array([0.4, -0.3, 2.5])
+    a, b = room_pair(truth, resolution=0.05)
+    result = tm.match(a, b)
+    d = tm.compose(tm.inverse(truth), result.pose)
+    assert math.hypot(d[0], d[1]) <= 0.05 and abs(math.degrees(d[2])) <= 0.5
+    assert result.accepted and result.hypotheses and isinstance(result.hypotheses[0], tm.Hypothesis)
+    np.testing.assert_array_equal(result.initial_pose, result.hypotheses[0].pose)
+    # a plain match has no hypotheses
+    assert tm.match(a, b, truth).hypotheses == ()
+
+
+def test_match_within_a_window_around_a_wrong_guess():
+    import taichi_match as tm
+
+    truth = np.array([0.4, -0.3, 0.6])
+    a, b = room_pair(truth, resolution=0.05)
+    guess = truth + np.array([1.2, -0.9, 0.25])        # far beyond the local matcher's basin
+    result = tm.match(a, b, guess, search_window=(2.0, 0.4))
+    d = tm.compose(tm.inverse(truth), result.pose)
+    assert math.hypot(d[0], d[1]) <= 0.05 and abs(math.degrees(d[2])) <= 0.5 and result.accepted
+
+
+def test_an_ambiguous_match_is_not_accepted():
+    import taichi_match as tm
+
+    a = corridor(size=8.0, resolution=0.05)
+    b = rasterize(lambda x, y: np.where(np.abs(y) < 3.0, 0.0, np.where(np.abs(y) < 3.05, 1.0, np.nan)),
+                  (140, 60), 0.05, (-1.5, -3.5), (1.3, 0.4, 0.0))
+    result = tm.match(a, b)
+    assert len(result.hypotheses) >= 2 and not result.accepted
+
+
+def test_a_window_needs_a_guess():
+    import taichi_match as tm
+
+    a, b = room_pair((0.4, -0.3, 0.6))
+    with pytest.raises(tm.InvalidOptionError):
+        tm.match(a, b, search_window=(1.0, 0.1))
+    with pytest.raises(tm.InvalidMapError):
+        tm.match(a, np.zeros((3, 3)))
