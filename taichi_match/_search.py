@@ -45,6 +45,8 @@ are exact above that fraction of its score.
 
 import dataclasses
 import math
+import threading
+import weakref
 
 import numpy as np
 from scipy import ndimage
@@ -158,11 +160,25 @@ def _points(b: GridMap):
     return b.cell_centres(*np.nonzero(walls)), b.cell_centres(*np.nonzero(free))
 
 
-def _coarsened(grid: GridMap, resolution: float) -> GridMap:
-    """``grid`` coarsened by the power of two that brings its cells nearest ``resolution`` (never
-    finer than given); a coarse cell is a wall when it holds one."""
+_GRIDS = weakref.WeakKeyDictionary()      # GridMap -> {resolution: its trinary map as searched}
+_GRIDS_LOCK = threading.Lock()
+
+
+def _searched_grid(grid: GridMap, resolution: float) -> GridMap:
+    """``trinary(grid)`` coarsened by the power of two that brings its cells nearest
+    ``resolution`` (never finer than given), a coarse cell a wall when it holds one; kept for as
+    long as ``grid`` lives (a mapping loop searches each submap against many)."""
+    with _GRIDS_LOCK:
+        known = _GRIDS.get(grid, {}).get(resolution)
+    if known is not None:
+        return known
     factor = 2 ** max(int(round(math.log2(resolution / grid.resolution))), 0)
-    return grid if factor == 1 else coarsen(grid, factor, reduce="max")
+    searched = trinary(grid)
+    if factor > 1:
+        searched = coarsen(searched, factor, reduce="max")
+    with _GRIDS_LOCK:
+        _GRIDS.setdefault(grid, {})[resolution] = searched
+    return searched
 
 
 def lattice_cells(a: GridMap, points: np.ndarray, centre: np.ndarray, theta: float) -> np.ndarray:
@@ -357,7 +373,7 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
     if opts.resolution is not None and not (0.0 < opts.resolution <= 1e3):
         raise InvalidOptionError(f"resolution must be in (0, 1e3] metres or None; got {opts.resolution!r}")
     target = DEFAULT_RESOLUTION if opts.resolution is None else opts.resolution
-    a, b = _coarsened(trinary(a), target), _coarsened(trinary(b), target)
+    a, b = _searched_grid(a, target), _searched_grid(b, target)
     walls, free = _points(b)
     if len(walls) == 0:
         raise InvalidMapError("B has no occupied cell: nothing to search with")

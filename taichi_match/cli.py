@@ -118,7 +118,10 @@ def _align(args):
                if v is not None}
     # the paper's discrepancy takes the paper's settings (MatchOptions.paper) under the options given
     base = tm.MatchOptions.paper() if args.blur_kind in ("gaussian", "ramp") else tm.MatchOptions()
-    res = tm.Matcher(base, **options).match(a, b, args.initial)
+    if args.window is not None and args.initial is None:
+        raise tm.InvalidOptionError("--window needs --initial: the guess to search around")
+    window = None if args.window is None else (args.window[0], np.radians(args.window[1]))
+    res = tm.Matcher(base, **options).match(a, b, args.initial, search_window=window)
     cov = res.calibrated_covariance
     if args.json:
         print(json.dumps({
@@ -131,6 +134,7 @@ def _align(args):
             "status": res.status.name, "converged": bool(res.converged), "message": res.message,
             "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
             "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
+            "hypotheses": [{"pose": h.pose.tolist(), "score": h.score} for h in res.hypotheses],
         }, indent=2))
     else:
         x, y, t = res.pose
@@ -141,6 +145,10 @@ def _align(args):
               f"{100 * ev.wall_agreement:.0f} % meet the other map's walls, {100 * ev.wall_conflict:.0f} % land on "
               f"its free space, uncertainty {100 * ev.uncertainty:.1f} cm")
         print(f"iterations     {res.iterations}, overlap {res.overlap} cells, time {1e3 * res.seconds:.1f} ms")
+        for k, h in enumerate(res.hypotheses):
+            hx, hy, ht = h.pose
+            print(f"{'searched' if k == 0 else 'runner-up':14} x={hx:+.4f} m  y={hy:+.4f} m  theta={ht:+.5f} rad  "
+                  f"score {h.score:.1f}" + (f" ({h.score / res.hypotheses[0].score:.2f} of the best)" if k else ""))
         print("covariance (x, y, theta), calibrated:")
         print(np.array2string(cov, precision=6))
         for d in res.degenerate:
@@ -174,7 +182,20 @@ def _merge(args):
             if not args.force:
                 raise MapFileError(f"{target!r} exists: use --force to replace it")
     a, b = _load_pair(args)
-    merged = merge_maps(a, b, args.pose)
+    pose = args.pose
+    if pose is None:                        # align first, without a guess
+        import taichi_match as tm
+
+        res = tm.match(a, b)
+        if not res.accepted:
+            print(f"taichi-match: the search's alignment is not accepted ({res.status.name}"
+                  + (", ambiguous: a runner-up scores "
+                     f"{res.hypotheses[1].score / res.hypotheses[0].score:.2f} of the best" if len(res.hypotheses) > 1 else "")
+                  + "): nothing written; give --pose", file=sys.stderr)
+            return EXIT_NOT_ACCEPTED
+        pose = res.pose
+        print(f"aligned: x={pose[0]:+.4f} m  y={pose[1]:+.4f} m  theta={pose[2]:+.5f} rad")
+    merged = merge_maps(a, b, pose)
     write_ros_map(merged, output, mode=args.mode)
     print(f"wrote {args.output}: {merged.shape[0]} x {merged.shape[1]} cells at {merged.resolution} m, "
           f"origin {merged.origin}")
@@ -204,7 +225,8 @@ def _slam(args):
                              f"timestamps ({len(stamps)} poses for {len(log)} scans)")
     options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
                                                ("max_ray_length", args.max_ray), ("target_refresh", args.target_refresh),
-                                               ("submap_frames", args.submap_frames or None))
+                                               ("submap_frames", args.submap_frames or None),
+                                               ("loop_search", args.loop_search))
                              if v is not None})
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
@@ -322,8 +344,12 @@ def main(argv=None):
     align = sub.add_parser("align", help="find the pose of map B in map A (exit 0: accepted, 1: not accepted, "
                                          "2: bad input)")
     _add_map_arguments(align)
-    align.add_argument("--initial", nargs=3, type=float, required=True, metavar=("X", "Y", "THETA"),
-                       help="initial guess of B's pose in A (metres, metres, radians)")
+    align.add_argument("--initial", nargs=3, type=float, metavar=("X", "Y", "THETA"),
+                       help="initial guess of B's pose in A (metres, metres, radians); without it a search over "
+                            "every pose where the maps overlap finds one")
+    align.add_argument("--window", nargs=2, type=float, metavar=("METRES", "DEGREES"),
+                       help="search within this window around --initial first (a guess beyond the local "
+                            "matcher's basin)")
     align.add_argument("--json", action="store_true", help="print the result as JSON")
     align.add_argument("--plot", metavar="PNG", help="write the overlay of the aligned maps with the covariance")
     align.add_argument("--g2o", nargs=2, type=int, metavar=("ID_A", "ID_B"),
@@ -342,8 +368,9 @@ def main(argv=None):
     align.set_defaults(func=_align)
     merge = sub.add_parser("merge", help="fuse map B into map A's frame (log-odds) and save a map_server map")
     _add_map_arguments(merge)
-    merge.add_argument("--pose", nargs=3, type=float, required=True, metavar=("X", "Y", "THETA"),
-                       help="B's pose in A (from align)")
+    merge.add_argument("--pose", nargs=3, type=float, metavar=("X", "Y", "THETA"),
+                       help="B's pose in A (from align); without it the maps are aligned first by a search "
+                            "(nothing is written unless that alignment is accepted)")
     merge.add_argument("-o", "--output", required=True, metavar="MERGED.yaml",
                        help="the merged map's YAML; its image goes beside it as MERGED.pgm (.png in scale mode)")
     merge.add_argument("--force", action="store_true", help="replace an existing output (never an input)")
@@ -369,6 +396,9 @@ def main(argv=None):
     slam.add_argument("--submap-scans", type=int, metavar="N", help="scans per submap (even, default 10)")
     slam.add_argument("--target-refresh", type=int, metavar="N", help="the front end casts its target submap again "
                                                                       "after N scans (default 1: for every scan)")
+    slam.add_argument("--loop-search", type=float, metavar="METRES",
+                      help="search loop-closure candidates whose drift bound exceeds this within a window first "
+                           "(see SlamOptions.loop_search)")
     slam.add_argument("--submap-frames", action="store_true",
                       help="give each submap its own node in the pose graph (see SlamOptions.submap_frames)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")

@@ -97,3 +97,46 @@ def test_merge_fuses_in_log_odds_and_respects_unknown():
     assert m.shape == (1, 4)
     assert m.prob[0, 0] == pytest.approx(0.64 / (0.64 + 0.04))
     assert m.prob[0, 1] == pytest.approx(0.6) and m.prob[0, 2] == pytest.approx(0.3) and np.isnan(m.prob[0, 3])
+
+
+def test_align_without_a_guess_searches_and_lists_the_hypotheses(tmp_path, capsys):
+    truth = (0.3, -0.2, 2.2)
+    a = rasterize(room_scene, (130, 170), 0.05, (-4.1, -3.1))
+    b = rasterize(room_scene, (100, 120), 0.05, (-3.0, -2.5), pose_a2b=truth)
+    io.write_ros_map(a, tmp_path / "a.yaml")
+    io.write_ros_map(b, tmp_path / "b.yaml")
+    code = main(["align", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert code == 0 and result["accepted"] and len(result["hypotheses"]) >= 1
+    assert np.allclose(result["pose"][:2], truth[:2], atol=0.05) and abs(result["pose"][2] - truth[2]) < 0.01
+    # a window around a guess 1 m and 10 degrees off, in plain text
+    code = main(["align", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "--initial", "1.0", "0.5", "2.4",
+                 "--window", "1.5", "20"])
+    out = capsys.readouterr().out
+    assert code == 0 and "searched" in out
+
+
+def test_a_window_without_a_guess_is_bad_input(pair, capsys):
+    a, b, _ = pair
+    assert main(["align", str(a), str(b), "--window", "1", "10"]) == 2
+    assert "--window needs --initial" in capsys.readouterr().err
+
+
+def test_merge_without_a_pose_aligns_first(pair, tmp_path, capsys):
+    a, b, truth = pair
+    out = tmp_path / "merged.yaml"
+    assert main(["merge", str(a), str(b), "-o", str(out)]) == 0
+    assert "aligned:" in capsys.readouterr().out and out.exists()
+
+
+def test_merge_without_a_pose_writes_nothing_when_the_alignment_is_ambiguous(tmp_path, capsys):
+    from taichi_match.scenes import corridor
+
+    a = corridor(size=8.0, resolution=0.05)
+    b = rasterize(lambda x, y: np.where(np.abs(y) < 3.0, 0.0, np.where(np.abs(y) < 3.05, 1.0, np.nan)),
+                  (140, 60), 0.05, (-1.5, -3.5), (1.3, 0.4, 0.0))
+    io.write_ros_map(a, tmp_path / "a.yaml")
+    io.write_ros_map(b, tmp_path / "b.yaml")
+    out = tmp_path / "merged.yaml"
+    assert main(["merge", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "-o", str(out)]) == 1
+    assert "not accepted" in capsys.readouterr().err and not out.exists()

@@ -473,3 +473,21 @@ def test_overlap_share_by_hand():
     assert overlap_share(a, b, (0.2, 0.0, 0.0)) == pytest.approx(0.2)   # two columns right
     assert overlap_share(a, b, (2.0, 0.0, 0.0)) == 0.0
     assert overlap_share(a, Footprint(GridMap(np.full((10, 10), np.nan), 0.1)), (0.0, 0.0, 0.0)) == 0.0
+
+
+def test_loop_search_searches_candidates_beyond_the_basin(simulated):
+    """With ``loop_search`` every candidate whose drift bound exceeds it is matched after a
+    windowed search (issue 13), the window as documented, and the run still recovers the truth."""
+    from taichi_match.slam import LOOP_SEARCH_ARM, LOOP_SEARCH_MAX
+
+    result = Slam(SlamOptions(loop_search=0.5)).run(simulated.log)
+    searched = [loop for loop in result.loops if loop["window"] is not None]
+    assert searched and all(loop["hypotheses"] for loop in searched)
+    assert all(loop["window"][0] <= LOOP_SEARCH_MAX and loop["window"][1] == loop["window"][0] / LOOP_SEARCH_ARM
+               for loop in searched)
+    assert all(not loop["hypotheses"] for loop in result.loops if loop["window"] is None)
+    errors = result.poses[:, :2] - simulated.truth[:, :2]
+    assert np.sqrt((errors ** 2).sum(axis=1).mean()) < 0.1
+    for bad in (-1.0, float("nan"), "1"):
+        with pytest.raises(InvalidOptionError):
+            SlamOptions(loop_search=bad)
