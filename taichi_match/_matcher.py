@@ -210,7 +210,11 @@ AMBIGUITY = 0.9
 
 
 def _ambiguous(hypotheses) -> bool:
-    return len(hypotheses) > 1 and hypotheses[1].score >= AMBIGUITY * hypotheses[0].score
+    """After a search: no best with a positive score, or a runner-up close to it."""
+    if not hypotheses:
+        return False
+    best = hypotheses[0].score
+    return best <= 0 or (len(hypotheses) > 1 and hypotheses[1].score >= AMBIGUITY * best)
 
 
 def _with(options, overrides):
@@ -255,10 +259,12 @@ class MatchResult:
         share of walls meeting the other map's walls, the share landing on its free space, and
         the largest standard deviation outside degenerate directions (``taichi_match._verdict``).
         After a search, also False when a distinct runner-up scores at least ``AMBIGUITY`` times
-        the best: the maps fit two ways (a corridor, a symmetric room).
+        the best (the maps fit two ways: a corridor, a symmetric room) or when the search hit
+        its budget of nodes (``search_complete`` False: the best found, not proven best).
     hypotheses : after a search (no initial pose, or ``search_window``), its distinct lattice
         poses with their scores (``_search.Hypothesis``), best first; the best was refined into
-        ``pose``. Empty without a search.
+        ``pose``. Empty without a search. ``search_complete``: None without a search, else whether
+        it ran to the end (``_search.SearchOptions.max_nodes``).
     """
 
     pose: np.ndarray
@@ -283,6 +289,7 @@ class MatchResult:
     residual: float
     options: MatchOptions = field(repr=False)
     hypotheses: tuple = ()
+    search_complete: Optional[bool] = None
 
     @property
     def calibrated_covariance(self):
@@ -354,7 +361,7 @@ class Matcher:
         within ``search_window``; see ``match``."""
         start = time.perf_counter()
         opts = _with(self.options, overrides)
-        hypotheses = ()
+        hypotheses, complete = (), None
         if initial_pose is None or search_window is not None:
             for name, grid in (("a", a), ("b", b)):
                 if not isinstance(grid, GridMap):
@@ -363,7 +370,7 @@ class Matcher:
             if search_window is not None and guess is None:
                 raise InvalidOptionError("search_window needs an initial_pose to search around")
             found = search(a, b, guess, SearchOptions(window=search_window), engine=opts.engine)
-            hypotheses = tuple(found.hypotheses)
+            hypotheses, complete = tuple(found.hypotheses), found.complete
             initial_pose = hypotheses[0].pose
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
@@ -397,8 +404,9 @@ class Matcher:
             cost=float(cost_value), discrepancy=float(e), overlap=int(overlap), prior_weight=full_weight,
             initial_pose=r0, iterations=nit, evaluations=counter.poses, launches=counter.launches,
             converged=status.converged, status=status, message=MESSAGES[status],
-            seconds=time.perf_counter() - start, accepted=proof.accepts(status.converged) and not _ambiguous(hypotheses),
-            evidence=proof, covariance_floor=floor, residual=residual, options=opts, hypotheses=hypotheses)
+            seconds=time.perf_counter() - start, accepted=proof.accepts(status.converged) and not _ambiguous(hypotheses) and complete is not False,
+            evidence=proof, covariance_floor=floor, residual=residual, options=opts, hypotheses=hypotheses,
+            search_complete=complete)
 
     @staticmethod
     def _newton_levels(prep_a, prep_b, opts, r0, full_weight, counter):

@@ -78,6 +78,10 @@ class SearchOptions:
     separation : (metres, radians): lattice poses closer than this in both (c's position, angle)
         are the same hypothesis.
     rotation_step : the lattice's angle step; None: the farthest point of B moves one cell of A.
+    max_nodes : a budget of nodes scored (bounds and leaves; about 0.5 M a second on laser
+        submaps): past it the search stops with the best found so far and says it is not
+        complete (``SearchResult.complete``). Unambiguous pairs take 10^4-10^5; an ambiguous pair of
+        laser submaps took 25 M (56 s) without a budget.
     resolution : the cell side the search runs at, metres: both maps are coarsened by a power of
         two to about it (walls kept: a coarse cell holding a wall is one, ``_pyramid.coarsen``
         "max"); None: ``DEFAULT_RESOLUTION`` or the maps' own if coarser. The lattice, and with
@@ -90,6 +94,7 @@ class SearchOptions:
     separation: tuple = (0.5, math.radians(10.0))
     rotation_step: float = None
     resolution: float = None
+    max_nodes: int = 2_000_000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,6 +114,7 @@ class SearchResult:
     lattice_size: int       # poses in the lattice (what brute force would score)
     rotation_step: float    # the lattice's angle step, radians
     resolution: float       # the cell side it searched at, metres (its translation step)
+    complete: bool = True   # False: stopped at ``max_nodes``; the best is the best found, not proven
 
 
 def score_values(a: GridMap, blur: float):
@@ -366,6 +372,8 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
         if not (0.0 <= metres <= 1e4 and 0.0 <= radians <= 4.0 * math.pi):
             raise InvalidOptionError(f"window must be (0..1e4 metres, 0..4 pi radians); got {opts.window!r}")
         guess = np.asarray(guess, dtype=np.float64)
+    if isinstance(opts.max_nodes, bool) or not isinstance(opts.max_nodes, int) or opts.max_nodes < 1:
+        raise InvalidOptionError(f"max_nodes must be an integer >= 1; got {opts.max_nodes!r}")
     if opts.blur is not None and not (0.0 < opts.blur <= 1e3):
         raise InvalidOptionError(f"blur must be in (0, 1e3] metres or None; got {opts.blur!r}")
     if engine not in ("taichi", "numpy"):
@@ -390,9 +398,9 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
     tree = _Tree(levels, lattice.step * wall_radius / a.resolution)
     blur = max(0.1, a.resolution) if opts.blur is None else opts.blur
     scorer = _Scorer(a, walls, free, centre, lattice, tree, blur, engine)
-    leaves = _branch_and_bound(scorer, lattice, tree, opts)
+    leaves, complete = _branch_and_bound(scorer, lattice, tree, opts)
     hypotheses = [Hypothesis(pose, float(score)) for pose, score in leaves]
-    return SearchResult(hypotheses, scorer.scored, lattice.size, lattice.step, a.resolution)
+    return SearchResult(hypotheses, scorer.scored, lattice.size, lattice.step, a.resolution, complete)
 
 
 class _Tree:
@@ -437,7 +445,8 @@ class _Tree:
 
 
 def _branch_and_bound(scorer, lattice, tree, opts):
-    """Best-first branch and bound; returns [(pose, score)] of the distinct hypotheses, best first."""
+    """Best-first branch and bound: ([(pose, score)] of the distinct hypotheses, best first,
+    whether it ran to the end rather than to ``opts.max_nodes``)."""
     levels = tree.levels
 
     evaluate = scorer
@@ -445,14 +454,27 @@ def _branch_and_bound(scorer, lattice, tree, opts):
     nodes = tree.top(lattice)
     bounds = evaluate(levels, nodes)
     if levels == 0:
-        return _hypotheses(lattice, bounds, nodes, _distinct(lattice, bounds, nodes, opts, -np.inf)[1])
+        return _hypotheses(lattice, bounds, nodes, _distinct(lattice, bounds, nodes, opts, -np.inf)[1]), True
     node_levels = np.full(len(nodes), levels)
     leaf_scores, leaf_nodes = np.empty(0), np.empty((0, 3), dtype=np.int32)
     threshold = -np.inf
+    complete = True
     while len(bounds):
         keep = bounds > threshold
         bounds, node_levels, nodes = bounds[keep], node_levels[keep], nodes[keep]
         if not len(bounds):
+            break
+        if scorer.scored >= opts.max_nodes:
+            # over budget: the best node so far followed down to a leaf, its best child each level
+            complete = False
+            best = int(np.argmax(bounds))
+            level, node = int(node_levels[best]), nodes[best:best + 1]
+            while level > 0:
+                children = tree.children(node, level, lattice)
+                values = evaluate(level - 1, children)
+                node, level = children[int(np.argmax(values)):int(np.argmax(values)) + 1], level - 1
+            leaf_scores = np.concatenate([leaf_scores, values])
+            leaf_nodes = np.concatenate([leaf_nodes, children])
             break
         # the BATCH highest bounds (argpartition is deterministic for the same frontier)
         if len(bounds) > BATCH:
@@ -480,7 +502,7 @@ def _branch_and_bound(scorer, lattice, tree, opts):
             # keep only the leaves that may still be hypotheses (and the best's ties)
             above |= leaf_scores >= leaf_scores.max()
             leaf_scores, leaf_nodes = leaf_scores[above], leaf_nodes[above]
-    return _hypotheses(lattice, leaf_scores, leaf_nodes, _distinct(lattice, leaf_scores, leaf_nodes, opts, threshold)[1])
+    return _hypotheses(lattice, leaf_scores, leaf_nodes, _distinct(lattice, leaf_scores, leaf_nodes, opts, threshold)[1]), complete
 
 
 def _hypotheses(lattice, scores, nodes, picked):

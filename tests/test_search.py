@@ -205,3 +205,17 @@ def test_a_window_needs_a_guess():
         tm.match(a, b, search_window=(1.0, 0.1))
     with pytest.raises(tm.InvalidMapError):
         tm.match(a, np.zeros((3, 3)))
+
+
+def test_a_search_past_its_budget_says_so_and_is_not_accepted():
+    import taichi_match as tm
+
+    truth = np.array([0.4, -0.3, 2.5])
+    a, b = room_pair(truth, resolution=0.05)
+    full = search(a, b)
+    cut = search(a, b, None, SearchOptions(max_nodes=full.nodes // 4))
+    assert full.complete and not cut.complete and cut.nodes < full.nodes
+    assert cut.hypotheses[0].score <= full.hypotheses[0].score
+    assert tm.match(a, b).search_complete is True and tm.match(a, b, truth).search_complete is None
+    with pytest.raises(tm.InvalidOptionError):
+        search(a, b, None, SearchOptions(max_nodes=0))
