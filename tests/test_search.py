@@ -219,3 +219,22 @@ def test_a_search_past_its_budget_says_so_and_is_not_accepted():
     assert tm.match(a, b).search_complete is True and tm.match(a, b, truth).search_complete is None
     with pytest.raises(tm.InvalidOptionError):
         search(a, b, None, SearchOptions(max_nodes=0))
+
+
+def test_parallel_corridors_within_a_window():
+    """Table 2's case: B a copy of the corridor beside A's, sharing its wall. Without a guess the
+    full overlap (y = 0) explains B better (two walls meet instead of one, nothing conflicts), so
+    the case needs a window: around a guess 0.8 m and 5 degrees off, the search finds the shared
+    wall (y = width + wall) in angle and across the corridor."""
+    from taichi_match.scenes import parallel_corridors_y
+
+    a = corridor(size=8.0, resolution=0.05)
+    y = parallel_corridors_y()
+    guess = (0.3, y + 0.8, math.radians(5.0))
+    result = search(a, a, guess, SearchOptions(window=(1.5, math.radians(10.0)), resolution=0.05))
+    pose = result.hypotheses[0].pose
+    assert abs(wrap_angle(pose[2])) <= result.rotation_step
+    walls, _ = _points(trinary(a))
+    ys = transform_points(pose, walls)[:, 1]
+    lower = ys < y                                   # B's lower wall, on A's upper one
+    assert np.abs(ys[lower] - 3.025).max() <= 0.1
