@@ -206,16 +206,17 @@ class _Lattice:
         step = opts.rotation_step
         if step is None:          # the farthest point moves by one cell: chord res at radius
             step = math.acos(max(1.0 - res * res / (2.0 * radius * radius), -1.0)) if radius > res else math.pi / 2
-        self.centre = centre
+        self.centre, self.radius = centre, radius
         self._a = a
         if opts.window is None:
             n = max(int(math.ceil(2.0 * math.pi / step)), 1)
             self.step = 2.0 * math.pi / n
             self.thetas = np.arange(n) * self.step
-            known = np.argwhere(~np.isnan(a.prob))
+            known = ~np.isnan(a.prob)
+            rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
             reach = int(math.ceil(radius / res)) + 1
-            self.lo = known.min(axis=0) - reach
-            self.hi = known.max(axis=0) + reach + 1            # exclusive
+            self.lo = np.array([rows[0], cols[0]]) - reach
+            self.hi = np.array([rows[-1], cols[-1]]) + reach + 1            # exclusive
         else:
             metres, radians = (float(v) for v in opts.window)
             n = int(math.ceil(radians / step))
@@ -259,8 +260,7 @@ class _Scorer:
     def __init__(self, a, walls, free, centre, lattice, tree, blur, engine):
         self.walls, self.free, self.centre = walls, free, centre
         self.a, self.lattice, self.tree, self.engine = a, lattice, tree, engine
-        reach = int(math.ceil(float(np.sqrt(((np.concatenate([walls, free]) - centre) ** 2).sum(axis=1).max()))
-                              / a.resolution)) + 2                     # |q| at most, any angle
+        reach = int(math.ceil(lattice.radius / a.resolution)) + 2             # |q| at most, any angle
         sizes = [2**level + 2 * tree.spread[level] for level in range(tree.levels + 1)]
         spread = max(tree.spread)
         h, w = a.shape
