@@ -3,7 +3,8 @@
 The pairs are two maps of the same building from different runs, without a ground-truth pose.
 ``taichi_match.match`` without a guess searches every pose where the maps overlap, refines the
 best, and lists the distinct runner-ups; this script prints them and writes
-``docs/cross_run/<pair>.png``.
+``docs/cross_run/<pair>.png`` (the maps overlaid at the search's pose and at the matched one) and,
+for an accepted match, ``docs/cross_run/<pair>_merged.png`` (A, B and B merged into A's frame).
 
     python examples/cross_run_pairs.py [--maps ../shared/maps] [--out docs/cross_run]
 """
@@ -14,6 +15,7 @@ from pathlib import Path
 
 import taichi_match as tm
 from taichi_match import io, plots
+from taichi_match.merge import merge_maps
 
 # (A, overrides, B, overrides): quirks from the maps' SOURCES.md
 PAIRS = (
@@ -42,6 +44,9 @@ def main():
         name = f"{name_a}__{name_b}"
         plots.save_overlay(os.path.join(args.out, name + ".png"), a, b, res.initial_pose, res,
                            title=f"A = {name_a}, B = {name_b}")
+        if res.accepted:
+            plots.save_merge(os.path.join(args.out, name + "_merged.png"), a, b, merge_maps(a, b, res.pose),
+                             title=f"{name_b} merged into {name_a}")
         g = ", ".join(f"{v:.2f}" for v in res.initial_pose)
         p = ", ".join(f"{v:.3f}" for v in res.pose)
         ratio = f"{res.hypotheses[1].score / res.hypotheses[0].score:.2f}" if len(res.hypotheses) > 1 else "-"

@@ -26,7 +26,7 @@ from ._grid import GridMap
 from ._kernels import check_not_forked
 from ._newton import minimize_newton
 from ._prepared import ENGINES, PreparedMap, make_engine
-from ._search import SearchOptions, search
+from ._search import RUNNER_UP_FRACTION, SearchOptions, search
 from ._se2 import as_pose, wrap_angle
 from ._verdict import Evidence, compare_walls, evidence, placed_walls
 
@@ -205,8 +205,8 @@ class MatchOptions:
 
 
 # After a search, a distinct runner-up scoring at least this times the best makes the match
-# ambiguous (not accepted). Runner-ups are exact above ``_search.RUNNER_UP_FRACTION`` (0.8).
-AMBIGUITY = 0.9
+# ambiguous (not accepted): the fraction above which the search proves its runner-ups.
+AMBIGUITY = RUNNER_UP_FRACTION
 
 
 def _ambiguous(hypotheses) -> bool:

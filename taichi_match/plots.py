@@ -7,7 +7,8 @@ import numpy as np
 from ._errors import InvalidOptionError
 from ._grid import GridMap
 
-__all__ = ["map_rgba", "draw_map", "draw_overlay", "save_overlay", "save_surface", "save_maps", "save_trajectories"]
+__all__ = ["map_rgba", "draw_map", "draw_overlay", "save_overlay", "save_surface", "save_maps", "save_merge",
+           "save_trajectories"]
 
 UNKNOWN_RGB = (0.72, 0.82, 0.97)       # the paper draws unknown cells in blue
 
@@ -131,6 +132,24 @@ def save_maps(path, raw: GridMap, blurred: GridMap, *, title=""):
         ax.set_xlim(x0, x1)
         ax.set_ylim(y0, y1)
         ax.set_aspect("equal")
+        ax.set_title(label)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def save_merge(path, a: GridMap, b: GridMap, merged: GridMap, *, title=""):
+    """Three panels: A, B (each in its own frame) and ``merged`` (``merge.merge_maps``, frame A)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2))
+    for ax, grid, label in ((axes[0], a, "A"), (axes[1], b, "B"), (axes[2], merged, "B merged into A")):
+        draw_map(ax, grid)
+        x0, x1, y0, y1 = grid.extent
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
         ax.set_title(label)
     fig.suptitle(title)
     fig.tight_layout()

@@ -9,7 +9,7 @@ from scipy import ndimage
 
 from taichi_match import GridMap
 from taichi_match._grid import trinary
-from taichi_match._search import SearchOptions, _Lattice, _points, lattice_cells, search
+from taichi_match._search import RUNNER_UP_FRACTION, SearchOptions, _Lattice, _points, lattice_cells, search
 from taichi_match._se2 import transform_points, wrap_angle
 from taichi_match.scenes import corridor
 
@@ -87,11 +87,11 @@ def test_the_runner_up_is_the_best_pose_apart_from_the_best():
             & (np.abs(c + lattice.lo[1] - best_col) * a.resolution <= metres)
             & (np.abs(wrap_angle(lattice.thetas[k] - lattice.thetas[best_k])) <= radians))
     runner_up = scores[~near].max()
-    if runner_up >= 0.5 * result.hypotheses[0].score:
+    if runner_up >= RUNNER_UP_FRACTION * result.hypotheses[0].score:
         assert len(result.hypotheses) >= 2
         assert result.hypotheses[1].score == pytest.approx(runner_up, rel=1e-6)
-    else:
-        assert len(result.hypotheses) == 1
+    else:           # below the fraction a runner-up may be missed, never made up
+        assert all(h.score <= runner_up + 1e-6 for h in result.hypotheses[1:])
 
 
 @pytest.mark.parametrize("theta", [0.0, 2.0, -2.9])
