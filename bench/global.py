@@ -143,8 +143,9 @@ def summary(rows, kind, peer):
         rs = sel if name == "all" else [r for r in sel if r["name"] == name]
         acc = [r for r in rs if r["accepted"]]
         times = [r["seconds"] for r in rs]
+        right = sum(r["ok"] for r in acc)
         line = (f"| {kind} | {name} | {len(rs)} | {100 * np.mean([r['ok'] for r in rs]):.0f} % | "
-                f"{100 * np.mean([r['ok'] for r in acc]) if acc else float('nan'):.0f} % ({len(acc)}) | "
+                f"{100 * right / len(acc) if acc else float('nan'):.1f} % ({right} / {len(acc)}) | "
                 f"{np.median(times):.2f} / {max(times):.2f} |")
         if peer:
             line += (f" {100 * np.mean([r['peer_ok'] for r in rs]):.0f} % | "
@@ -208,7 +209,7 @@ def main():
                 os.makedirs(args.plots, exist_ok=True)
                 plots.save_overlay(os.path.join(args.plots, f"{name_a}__{name_b}.png"), a, b, res.initial_pose, res,
                                    title=f"A = {name_a}, B = {name_b}")
-    head = "| set | map / log | pairs | correct | accepted correct (accepted) | seconds median / max |"
+    head = "| set | map / log | pairs | correct | accepted: correct (correct / accepted) | seconds median / max |"
     rule = "|---|---|---|---|---|---|"
     if peer:
         head += " ORB + RANSAC correct | its seconds |"

@@ -144,6 +144,8 @@ def _align(args):
         print(f"verdict        {'ACCEPTED' if res.accepted else 'NOT ACCEPTED'}: {ev.walls_compared} walls compared, "
               f"{100 * ev.wall_agreement:.0f} % meet the other map's walls, {100 * ev.wall_conflict:.0f} % land on "
               f"its free space, uncertainty {100 * ev.uncertainty:.1f} cm")
+        if not res.accepted:
+            print(f"not accepted   {_refusal(res)}")
         print(f"iterations     {res.iterations}, overlap {res.overlap} cells, time {1e3 * res.seconds:.1f} ms")
         for k, h in enumerate(res.hypotheses):
             hx, hy, ht = h.pose
@@ -164,6 +166,33 @@ def _align(args):
         from taichi_match import plots
         plots.save_overlay(args.plot, a, b, res.initial_pose, res, title=f"{args.map_a} + {args.map_b}")
     return EXIT_OK if res.accepted else EXIT_NOT_ACCEPTED
+
+
+def _refusal(res) -> str:
+    """Why ``res`` is not accepted, in a few words each reason (empty when it is)."""
+    if res.accepted:
+        return ""
+    from taichi_match._matcher import AMBIGUITY
+    from taichi_match._verdict import MAX_CONFLICT, MAX_UNCERTAINTY_M, MIN_AGREEMENT, MIN_WALLS
+
+    ev, hyp = res.evidence, res.hypotheses
+    reasons = [] if res.converged else [f"not converged ({res.status.name})"]
+    if res.search_complete is False:
+        reasons.append("the search stopped at its node budget, the best pose not proven")
+    if hyp and hyp[0].score <= 0:
+        reasons.append(f"the best searched pose scores {hyp[0].score:.0f}: B disagrees with A more than it agrees")
+    elif len(hyp) > 1 and hyp[1].score >= AMBIGUITY * hyp[0].score:
+        reasons.append(f"ambiguous: a runner-up scores {hyp[1].score / hyp[0].score:.2f} of the best")
+    for bad, what in ((ev.walls_compared < MIN_WALLS, f"{ev.walls_compared} walls compared (< {MIN_WALLS})"),
+                      (ev.wall_agreement < MIN_AGREEMENT, f"{100 * ev.wall_agreement:.0f} % of walls agree "
+                                                          f"(< {100 * MIN_AGREEMENT:.0f})"),
+                      (ev.wall_conflict > MAX_CONFLICT, f"{100 * ev.wall_conflict:.0f} % of walls on free space "
+                                                        f"(> {100 * MAX_CONFLICT:.0f})"),
+                      (not ev.uncertainty <= MAX_UNCERTAINTY_M, f"uncertainty {100 * ev.uncertainty:.1f} cm "
+                                                                f"(> {100 * MAX_UNCERTAINTY_M:.0f})")):
+        if bad:
+            reasons.append(what)
+    return "; ".join(reasons)
 
 
 def _merge(args):
@@ -188,10 +217,8 @@ def _merge(args):
 
         res = tm.match(a, b)
         if not res.accepted:
-            print(f"taichi-match: the search's alignment is not accepted ({res.status.name}"
-                  + (", ambiguous: a runner-up scores "
-                     f"{res.hypotheses[1].score / res.hypotheses[0].score:.2f} of the best" if len(res.hypotheses) > 1 else "")
-                  + "): nothing written; give --pose", file=sys.stderr)
+            print(f"taichi-match: the search's alignment is not accepted ({_refusal(res)}): nothing written; "
+                  f"give --pose", file=sys.stderr)
             return EXIT_NOT_ACCEPTED
         pose = res.pose
         print(f"aligned: x={pose[0]:+.4f} m  y={pose[1]:+.4f} m  theta={pose[2]:+.5f} rad")

@@ -139,4 +139,5 @@ def test_merge_without_a_pose_writes_nothing_when_the_alignment_is_ambiguous(tmp
     io.write_ros_map(b, tmp_path / "b.yaml")
     out = tmp_path / "merged.yaml"
     assert main(["merge", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "-o", str(out)]) == 1
-    assert "not accepted" in capsys.readouterr().err and not out.exists()
+    err = capsys.readouterr().err
+    assert "not accepted (ambiguous: a runner-up scores" in err and not out.exists()
