@@ -76,8 +76,8 @@ class SearchOptions:
     """Settings of a search. Units: metres, radians.
 
     window : (metres, radians) around the guess; None searches every pose where the maps overlap.
-    blur : sigma of A's envelope in the score, metres; None: 0.1 m or two cells of A if wider
-        (a lattice pose puts a point up to a cell and a half from where the true pose does).
+    blur : sigma of A's envelope in the score, metres; None: 0.1 m or one cell of A as searched
+        if wider (0.2 m at the default resolution).
     separation : (metres, radians): lattice poses closer than this in both (c's position, angle)
         are the same hypothesis.
     rotation_step : the lattice's angle step; None: the farthest point of B moves one cell of A.
