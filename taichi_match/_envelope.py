@@ -44,7 +44,7 @@ measured 3.5x faster than (M, 4) rows, whose loads do not vectorise).
 import numpy as np
 
 from ._cost import AffineMap, pose_feature_pair
-from ._grid import GridMap
+from ._grid import GridMap, cells
 from ._kernels import _STATE, PAD, Launcher, _launch, ensure_initialized, kernel_lock
 from ._se2 import as_poses, inverse, transform_points
 
@@ -136,7 +136,7 @@ def _build_conflict(ti):
 def wall_points(grid: GridMap, occupied: float = 0.5):
     """(rows, cols, weights): the cells of ``grid`` with p >= ``occupied``, weighted by p."""
     p = grid.prob
-    rows, cols = np.nonzero(p >= occupied)      # False on unknown (NaN) cells
+    rows, cols = cells(p >= occupied)           # False on unknown (NaN) cells
     return rows, cols, p[rows, cols]
 
 

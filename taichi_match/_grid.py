@@ -20,7 +20,7 @@ import numpy as np
 
 from ._errors import InvalidMapError
 
-__all__ = ["GridMap", "MAX_CELLS", "trinary"]
+__all__ = ["GridMap", "MAX_CELLS", "cells", "trinary"]
 
 MAX_CELLS = 2**31 - 1 - 4 * 65536      # cells of a map, padding included, must fit 32-bit indices
 
@@ -38,9 +38,10 @@ class GridMap:
         (x0, y0) of the outer corner of cell (0, 0), metres, in the map's own frame.
     """
 
-    __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "__weakref__")
+    __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "_known", "__weakref__")
 
     def __init__(self, prob, resolution, origin=(0.0, 0.0)):
+        self._known = None
         self._prob = _check_prob(prob)
         self._resolution = _check_resolution(resolution)
         *xy, self._yaw = _check_origin(origin)
@@ -76,8 +77,12 @@ class GridMap:
 
     @property
     def known(self):
-        """Boolean mask of known (non-NaN) cells."""
-        return ~np.isnan(self._prob)
+        """Read-only boolean mask of known (non-NaN) cells (made once: the map never changes)."""
+        if self._known is None:
+            known = ~np.isnan(self._prob)
+            known.setflags(write=False)
+            self._known = known
+        return self._known
 
     @property
     def extent(self):
@@ -139,6 +144,7 @@ def _trusted(prob, resolution, corner_pose) -> GridMap:
     grid = GridMap.__new__(GridMap)
     prob.setflags(write=False)
     grid._prob = prob
+    grid._known = None
     grid._resolution = float(resolution)
     grid._origin, grid._yaw = (float(corner_pose[0]), float(corner_pose[1])), float(corner_pose[2])
     return grid
@@ -197,6 +203,12 @@ def _check_origin(origin):
     if not np.all(np.isfinite(arr)):
         raise InvalidMapError(f"origin must be finite; got {arr.tolist()}")
     return (float(arr[0]), float(arr[1]), float(arr[2]) if arr.shape == (3,) else 0.0)
+
+
+def cells(mask: np.ndarray):
+    """(rows, cols) of the True cells of a 2-D mask in row-major order: ``np.nonzero(mask)``, from
+    the flat indices (4x faster on laser submaps: NumPy's 2-D nonzero works index by index)."""
+    return np.divmod(np.flatnonzero(mask), mask.shape[1])
 
 
 def trinary(grid: GridMap, *, occupied: float = 0.65, free: float = 0.196) -> GridMap:

@@ -72,7 +72,7 @@ class PreparedMap:
         # caller's map would keep it in the matcher's weak-keyed cache forever), on which the dense
         # kernel only counts the overlap
         self.lower = grid._with_trusted(grid.prob) if blur_kind == "envelope" else self.blurred
-        self.n_known = int(grid.known.sum())
+        self.n_known = int(np.count_nonzero(grid.known))
         # padded, values, rows, radius, centroid and spread are made when first asked for: the
         # envelope's coarser levels seldom need the first three and never the last three
 

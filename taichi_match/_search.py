@@ -52,7 +52,7 @@ import numpy as np
 from scipy import ndimage
 
 from ._errors import InvalidMapError, InvalidOptionError
-from ._grid import GridMap, trinary
+from ._grid import GridMap, cells, trinary
 from ._pyramid import coarsen
 from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
 from ._se2 import wrap_angle
@@ -166,7 +166,7 @@ def _points(b: GridMap):
     if walls.any():
         clear = ndimage.distance_transform_edt(~walls) >= CLEAR_CELLS
         free &= clear
-    return b.cell_centres(*np.nonzero(walls)), b.cell_centres(*np.nonzero(free))
+    return b.cell_centres(*cells(walls)), b.cell_centres(*cells(free))
 
 
 _GRIDS = weakref.WeakKeyDictionary()      # GridMap -> {resolution: its trinary map as searched}

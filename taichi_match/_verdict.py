@@ -33,6 +33,7 @@ import numpy as np
 
 from ._covariance import centroid_metric
 from ._distance import FAR, wall_distance
+from ._grid import cells
 from ._se2 import inverse, transform_points
 
 __all__ = ["Evidence", "evidence", "compare_walls", "placed_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS", "MIN_AGREEMENT",
@@ -73,7 +74,7 @@ class WallDistance:
         caller has them."""
         p = grid.prob
         self.grid = grid
-        rows, cols = np.nonzero(p >= 0.5) if walls is None else walls        # False on unknown (NaN) cells
+        rows, cols = cells(p >= 0.5) if walls is None else walls             # False on unknown (NaN) cells
         self.centres = grid.cell_centres(rows, cols)
         self._squared = squared
         if squared is None:

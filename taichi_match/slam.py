@@ -75,6 +75,7 @@ from typing import Optional
 import numpy as np
 
 from ._errors import InvalidOptionError
+from ._grid import cells
 from ._matcher import Matcher, MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
@@ -577,7 +578,7 @@ class Footprint:
     def __init__(self, grid, stride: int = 5):
         self.grid = grid
         self.known = grid.known
-        rows, cols = np.nonzero(self.known)
+        rows, cols = cells(self.known)
         self.samples = grid.cell_centres(rows[::stride], cols[::stride])
 
 

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from taichi_match import GridMap, InvalidMapError, TaichiMatchError
+from taichi_match._grid import cells
 
 
 def test_cell_geometry_follows_the_stated_convention():
@@ -103,3 +104,11 @@ def test_coarsening_a_binary_map_by_counts_equals_the_float_reduction():
         for reduce in ("line", "mean"):
             fast, plain = coarsen(grid, reduce=reduce, binary=True), coarsen(grid, reduce=reduce)
             assert fast.prob.tobytes() == plain.prob.tobytes() and fast.corner_pose == plain.corner_pose
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 7), (0, 5), (5, 0), (100, 37)])
+def test_cells_lists_a_masks_true_cells_as_numpy_nonzero(shape):
+    mask = np.random.default_rng(sum(shape)).random(shape) < 0.3
+    rows, cols = cells(mask)
+    expected = np.nonzero(mask)
+    assert np.array_equal(rows, expected[0]) and np.array_equal(cols, expected[1])
