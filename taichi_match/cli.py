@@ -123,7 +123,14 @@ def _align(args):
     window = None if args.window is None else (args.window[0], np.radians(args.window[1]))
     res = tm.Matcher(base, **options).match(a, b, args.initial, search_window=window)
     cov = res.calibrated_covariance
-    if args.json:
+    edge = None                             # the g2o EDGE_SE2 line: pose and information matrix
+    if args.g2o is not None and not res.accepted:
+        print("taichi-match: the match is not accepted: no g2o edge written", file=sys.stderr)
+    elif args.g2o is not None:
+        info = np.linalg.inv(cov)
+        edge = (f"EDGE_SE2 {args.g2o[0]} {args.g2o[1]} {res.pose[0]:.6f} {res.pose[1]:.6f} {res.pose[2]:.6f} "
+                + " ".join(f"{info[i, j]:.6g}" for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))))
+    if args.json:                           # stdout is one JSON document, the edge inside it
         print(json.dumps({
             "pose": res.pose.tolist(), "covariance": cov.tolist(), "covariance_unscaled": res.covariance.tolist(),
             "information": res.information.tolist(), "degenerate": res.degenerate.tolist(),
@@ -135,6 +142,8 @@ def _align(args):
             "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
             "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
             "hypotheses": [{"pose": h.pose.tolist(), "score": h.score} for h in res.hypotheses],
+            "search_complete": res.search_complete, "not_accepted_because": _refusal(res) or None,
+            "g2o": edge,
         }, indent=2))
     else:
         x, y, t = res.pose
@@ -155,13 +164,8 @@ def _align(args):
         print(np.array2string(cov, precision=6))
         for d in res.degenerate:
             print("degenerate direction:", np.round(d, 4) + 0.0)
-    if args.g2o is not None and not res.accepted:
-        print("taichi-match: the match is not accepted: no g2o edge written", file=sys.stderr)
-    elif args.g2o is not None:
-        info = np.linalg.inv(cov)
-        ids = args.g2o
-        print(f"EDGE_SE2 {ids[0]} {ids[1]} {res.pose[0]:.6f} {res.pose[1]:.6f} {res.pose[2]:.6f} "
-              + " ".join(f"{info[i, j]:.6g}" for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))))
+        if edge is not None:
+            print(edge)
     if args.plot:
         from taichi_match import plots
         plots.save_overlay(args.plot, a, b, res.initial_pose, res, title=f"{args.map_a} + {args.map_b}")
@@ -380,7 +384,8 @@ def main(argv=None):
     align.add_argument("--json", action="store_true", help="print the result as JSON")
     align.add_argument("--plot", metavar="PNG", help="write the overlay of the aligned maps with the covariance")
     align.add_argument("--g2o", nargs=2, type=int, metavar=("ID_A", "ID_B"),
-                       help="also print a g2o EDGE_SE2 line (pose and information matrix)")
+                       help="also print a g2o EDGE_SE2 line (pose and information matrix; with --json, the "
+                            "document's \"g2o\" field)")
     align.add_argument("--blur", type=float, help="blur width, metres")
     align.add_argument("--blur-kind", choices=("envelope", "gaussian", "ramp"),
                        help="the discrepancy: 'envelope' (default) or the paper's |p_A - p_B| on a 'gaussian' "

@@ -25,16 +25,22 @@ def test_align_json_g2o_and_plot(pair, tmp_path, capsys):
     a, b, truth = pair
     code = main(["align", str(a), str(b), "--initial", "0", "0", "0", "--json", "--g2o", "3", "4",
                  "--plot", str(tmp_path / "o.png")])
-    out = capsys.readouterr().out
-    body, edge = out.rsplit("EDGE_SE2", 1)
-    result = json.loads(body)
-    assert code == 0 and result["converged"] and result["status"]
+    result = json.loads(capsys.readouterr().out)         # stdout is one JSON document, the edge inside
+    assert code == 0 and result["converged"] and result["status"] and result["not_accepted_because"] is None
     assert np.allclose(result["pose"], truth, atol=0.05)
     assert np.array(result["covariance"]).shape == (3, 3) and result["seconds"] > 0
-    fields = edge.split()
-    assert fields[:2] == ["3", "4"] and len(fields) == 11
+    fields = result["g2o"].split()
+    assert fields[:3] == ["EDGE_SE2", "3", "4"] and len(fields) == 12
+    fields = fields[1:]
     assert np.allclose([float(v) for v in fields[2:5]], result["pose"], atol=1e-5)
     assert (tmp_path / "o.png").stat().st_size > 10_000
+
+
+def test_align_prints_the_g2o_edge_as_text_without_json(pair, capsys):
+    a, b, _ = pair
+    assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--g2o", "3", "4"]) == 0
+    edges = [line for line in capsys.readouterr().out.splitlines() if line.startswith("EDGE_SE2 3 4 ")]
+    assert len(edges) == 1 and len(edges[0].split()) == 12
 
 
 @pytest.mark.parametrize("extra", [["--interpolation", "bilinear", "--blur-kind", "gaussian", "--blur", "0.5"],
