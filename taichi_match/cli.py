@@ -226,7 +226,7 @@ def _merge(args):
             return EXIT_NOT_ACCEPTED
         pose = res.pose
         print(f"aligned: x={pose[0]:+.4f} m  y={pose[1]:+.4f} m  theta={pose[2]:+.5f} rad")
-    merged = merge_maps(a, b, pose)
+    merged = merge_maps(a, b, pose, fusion=args.fusion)
     write_ros_map(merged, output, mode=args.mode)
     print(f"wrote {args.output}: {merged.shape[0]} x {merged.shape[1]} cells at {merged.resolution} m, "
           f"origin {merged.origin}")
@@ -398,7 +398,7 @@ def main(argv=None):
     align.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")
     align.add_argument("--max-iterations", type=int)
     align.set_defaults(func=_align)
-    merge = sub.add_parser("merge", help="fuse map B into map A's frame (log-odds) and save a map_server map")
+    merge = sub.add_parser("merge", help="fuse map B into map A's frame and save a map_server map")
     _add_map_arguments(merge)
     merge.add_argument("--pose", nargs=3, type=float, metavar=("X", "Y", "THETA"),
                        help="B's pose in A (from align); without it the maps are aligned first by a search "
@@ -406,7 +406,11 @@ def main(argv=None):
     merge.add_argument("-o", "--output", required=True, metavar="MERGED.yaml",
                        help="the merged map's YAML; its image goes beside it as MERGED.pgm (.png in scale mode)")
     merge.add_argument("--force", action="store_true", help="replace an existing output (never an input)")
-    merge.add_argument("--mode", choices=("trinary", "scale", "raw"), default="trinary")
+    merge.add_argument("--mode", choices=("trinary", "scale", "raw"), default="trinary",
+                       help="how the image encodes the map (map_server's modes; default: %(default)s)")
+    merge.add_argument("--fusion", choices=("max", "log-odds"), default="max",
+                       help="where both maps know a cell: the larger probability, so an obstacle either map "
+                            "saw stays one (default), or the evidence added in log-odds")
     merge.set_defaults(func=_merge)
     demo_slam = sub.add_parser("demo-slam", help="the mapping loop on a simulated robot, against its exact truth "
                                                  "(needs gtsam: pip install 'taichi-match[slam]')")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from conftest import rasterize, room_scene
-from taichi_match import io
+from taichi_match import InvalidOptionError, io
 from taichi_match.cli import main
 from taichi_match.merge import merge_maps
 
@@ -99,10 +99,20 @@ def test_merge_writes_a_map_in_as_frame(pair, tmp_path):
 def test_merge_fuses_in_log_odds_and_respects_unknown():
     a = io.GridMap(np.array([[0.8, np.nan, 0.3, np.nan]]), 1.0)
     b = io.GridMap(np.array([[0.8, 0.6, np.nan, np.nan]]), 1.0)
-    m = merge_maps(a, b, (0.0, 0.0, 0.0))
+    m = merge_maps(a, b, (0.0, 0.0, 0.0), fusion="log-odds")
     assert m.shape == (1, 4)
     assert m.prob[0, 0] == pytest.approx(0.64 / (0.64 + 0.04))
     assert m.prob[0, 1] == pytest.approx(0.6) and m.prob[0, 2] == pytest.approx(0.3) and np.isnan(m.prob[0, 3])
+
+
+def test_merge_keeps_an_obstacle_either_map_saw_by_default():
+    a = io.GridMap(np.array([[1.0, 0.0, 0.0, np.nan, np.nan]]), 1.0)
+    b = io.GridMap(np.array([[0.0, 1.0, 0.0, 0.0, np.nan]]), 1.0)
+    assert np.array_equal(merge_maps(a, b, (0.0, 0.0, 0.0)).prob, [[1.0, 1.0, 0.0, 0.0, np.nan]], equal_nan=True)
+    # in log-odds a wall one map saw and the other saw through is erased (1/2: unknown in a map_server file)
+    assert merge_maps(a, b, (0.0, 0.0, 0.0), fusion="log-odds").prob[0, 0] == pytest.approx(0.5)
+    with pytest.raises(InvalidOptionError):
+        merge_maps(a, b, (0.0, 0.0, 0.0), fusion="min")
 
 
 def test_align_without_a_guess_searches_and_lists_the_hypotheses(tmp_path, capsys):
