@@ -408,6 +408,7 @@ def main(argv=None):
     merge.add_argument("--force", action="store_true", help="replace an existing output (never an input)")
     merge.add_argument("--mode", choices=("trinary", "scale", "raw"), default="trinary",
                        help="how the image encodes the map (map_server's modes; default: %(default)s)")
+    # merge.FUSIONS written out: --help imports nothing heavy
     merge.add_argument("--fusion", choices=("max", "log-odds"), default="max",
                        help="where both maps know a cell: the larger probability, so an obstacle either map "
                             "saw stays one (default), or the evidence added in log-odds")
