@@ -2,6 +2,7 @@
 against synthetic ground truth."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -238,3 +239,20 @@ def test_parallel_corridors_within_a_window():
     ys = transform_points(pose, walls)[:, 1]
     lower = ys < y                                   # B's lower wall, on A's upper one
     assert np.abs(ys[lower] - 3.025).max() <= 0.1
+
+
+SHARED_MAPS = Path(__file__).resolve().parents[2] / "shared" / "maps"
+
+
+@pytest.mark.skipif(not SHARED_MAPS.is_dir(), reason="../shared/maps is not present")
+def test_the_gdc_cross_run_pair_without_a_guess():
+    """Two runs of one floor (SOURCES.md: 3ne's features lie at (x + 0.10 m, y + 0.10 m) in 3's frame,
+    its occupied cells 97.8 % on 3's after that shift), matched with no guess: within 0.05 m and
+    accepted, the search complete."""
+    from taichi_match import io, match
+
+    a = io.read_ros_map(next((SHARED_MAPS / "gdc_3").glob("*.yaml")))
+    b = io.read_ros_map(next((SHARED_MAPS / "gdc_3ne").glob("*.yaml")))
+    result = match(a, b)
+    assert result.accepted and result.search_complete
+    assert math.hypot(result.pose[0] - 0.10, result.pose[1] - 0.10) <= 0.05 and abs(result.pose[2]) <= math.radians(0.5)
