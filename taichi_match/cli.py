@@ -1,6 +1,7 @@
 """The ``taichi-match`` command line: parses, calls the library, prints. Heavy imports are lazy."""
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -347,6 +348,25 @@ def _add_map_arguments(parser):
                             help=f"override map {which.upper()}'s resolution (metres per cell)")
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("taichi-match")
+    except PackageNotFoundError:                 # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+def _require_matplotlib():
+    """--plot's dependency, checked before any work (a missing one is bad input, exit 2)."""
+    import importlib.util
+
+    if importlib.util.find_spec("matplotlib") is None:
+        from taichi_match import InvalidOptionError
+
+        raise InvalidOptionError("--plot needs matplotlib: pip install 'taichi-match[plots]'")
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse, with its errors on one line like every other error of the command."""
 
@@ -357,6 +377,7 @@ class _Parser(argparse.ArgumentParser):
 def main(argv=None):
     parser = _Parser(
         prog="taichi-match", description="Relative pose between overlapping occupancy grid maps.")
+    parser.add_argument("--version", action="version", version=f"taichi-match {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="match the paper's corridor against a copy of itself")
     demo.add_argument("--initial", nargs=3, type=float, metavar=("X", "Y", "THETA"), default=(0.8, -1.1, 0.3),
@@ -378,6 +399,7 @@ def main(argv=None):
     align.add_argument("--initial", nargs=3, type=float, metavar=("X", "Y", "THETA"),
                        help="initial guess of B's pose in A (metres, metres, radians); without it a search over "
                             "every pose where the maps overlap finds one")
+    align.add_argument("--degrees", action="store_true", help="THETA of --initial is in degrees, not radians")
     align.add_argument("--window", nargs=2, type=float, metavar=("METRES", "DEGREES"),
                        help="search within this window around --initial first (a guess beyond the local "
                             "matcher's basin)")
@@ -403,6 +425,7 @@ def main(argv=None):
     merge.add_argument("--pose", nargs=3, type=float, metavar=("X", "Y", "THETA"),
                        help="B's pose in A (from align); without it the maps are aligned first by a search "
                             "(nothing is written unless that alignment is accepted)")
+    merge.add_argument("--degrees", action="store_true", help="THETA of --pose is in degrees, not radians")
     merge.add_argument("-o", "--output", required=True, metavar="MERGED.yaml",
                        help="the merged map's YAML; its image goes beside it as MERGED.pgm (.png in scale mode)")
     merge.add_argument("--force", action="store_true", help="replace an existing output (never an input)")
@@ -445,9 +468,15 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if getattr(args, "trials", 1) < 1 or getattr(args, "covariance_trials", 2) < 2:
         parser.error("--trials must be >= 1 and --covariance-trials >= 2")
+    if getattr(args, "degrees", False):
+        for name in ("initial", "pose"):
+            if getattr(args, name, None) is not None:
+                setattr(args, name, [*getattr(args, name)[:2], math.radians(getattr(args, name)[2])])
     from taichi_match import TaichiMatchError
 
     try:
+        if args.command == "align" and args.plot:
+            _require_matplotlib()
         return args.func(args)
     except KeyboardInterrupt:
         print("taichi-match: interrupted", file=sys.stderr)

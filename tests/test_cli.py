@@ -1,6 +1,7 @@
 """The command line end to end on small maps made here."""
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -157,3 +158,29 @@ def test_merge_without_a_pose_writes_nothing_when_the_alignment_is_ambiguous(tmp
     assert main(["merge", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "-o", str(out)]) == 1
     err = capsys.readouterr().err
     assert "not accepted (ambiguous: a runner-up scores" in err and not out.exists()
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out.startswith("taichi-match ")
+
+
+def test_degrees_reads_theta_in_degrees(pair, capsys):
+    a, b, truth = pair
+    deg = [str(truth[0] + 0.05), str(truth[1] - 0.05), str(math.degrees(truth[2]) + 2.0)]
+    assert main(["align", str(a), str(b), "--initial", *deg, "--degrees", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert np.allclose(result["initial_pose"], [truth[0] + 0.05, truth[1] - 0.05, truth[2] + math.radians(2.0)])
+    assert np.allclose(result["pose"], truth, atol=0.05)
+
+
+def test_plot_without_matplotlib_is_bad_input_before_any_work(pair, tmp_path, capsys, monkeypatch):
+    import importlib.util
+
+    a, b, _ = pair
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *args: None if name == "matplotlib" else real(name, *args))
+    assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--plot", str(tmp_path / "o.png")]) == 2
+    err = capsys.readouterr()
+    assert "--plot needs matplotlib" in err.err and err.out == "" and not (tmp_path / "o.png").exists()
