@@ -26,8 +26,17 @@ PAIRS = (
 )
 
 
+def load_path(folder, name):
+    found = sorted((Path(folder) / name).glob("*.yaml"))
+    if not found:
+        raise SystemExit(f"no map {name!r} under {folder}: this example needs the project's shared robot maps "
+                         f"(shared/maps beside the repository; their origin and licences in its SOURCES.md), "
+                         f"or --maps FOLDER")
+    return found[0]
+
+
 def load(folder, name, overrides):
-    return io.read_ros_map(next((Path(folder) / name).glob("*.yaml")), **overrides)
+    return io.read_ros_map(load_path(folder, name), **overrides)
 
 
 def main():
@@ -35,6 +44,9 @@ def main():
     parser.add_argument("--maps", default=str(Path(__file__).resolve().parents[2] / "shared" / "maps"))
     parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "docs" / "cross_run"))
     args = parser.parse_args()
+    for name_a, _, name_b, _ in PAIRS:                 # every map there before any work
+        for name in (name_a, name_b):
+            load_path(args.maps, name)
     os.makedirs(args.out, exist_ok=True)
     print("| pair | searched (x, y, theta) | matched pose | accepted | runner-up / best | seconds |")
     print("|---|---|---|---|---|---|")
