@@ -7,6 +7,7 @@ polish -> Hessian (eq. 12) -> covariance (eq. 11).
 
 import dataclasses
 import functools
+import math
 import threading
 import time
 import weakref
@@ -369,6 +370,15 @@ class Matcher:
             guess = None if initial_pose is None else as_pose(initial_pose, "initial_pose")
             if search_window is not None and guess is None:
                 raise InvalidOptionError("search_window needs an initial_pose to search around")
+            if search_window is not None:
+                try:
+                    window = tuple(float(v) for v in search_window)
+                except (TypeError, ValueError):
+                    window = ()
+                if len(window) != 2 or not all(math.isfinite(v) for v in window):
+                    raise InvalidOptionError(f"search_window must be (metres, radians), two finite numbers; "
+                                             f"got {search_window!r}")
+                search_window = window
             found = search(a, b, guess, SearchOptions(window=search_window), engine=opts.engine)
             hypotheses, complete = tuple(found.hypotheses), found.complete
             initial_pose = hypotheses[0].pose

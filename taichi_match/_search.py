@@ -211,25 +211,29 @@ class _Lattice:
             step = math.acos(max(1.0 - res * res / (2.0 * radius * radius), -1.0)) if radius > res else math.pi / 2
         self.centre, self.radius = centre, radius
         self._a = a
+        # c's cells from which B can touch A's known cells: beyond them every pose scores 0
+        known = ~np.isnan(a.prob)
+        rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+        reach = int(math.ceil(radius / res)) + 1
+        self.lo = np.array([rows[0], cols[0]]) - reach
+        self.hi = np.array([rows[-1], cols[-1]]) + reach + 1            # exclusive
         if opts.window is None:
             n = max(int(math.ceil(2.0 * math.pi / step)), 1)
             self.step = 2.0 * math.pi / n
             self.thetas = np.arange(n) * self.step
-            known = ~np.isnan(a.prob)
-            rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
-            reach = int(math.ceil(radius / res)) + 1
-            self.lo = np.array([rows[0], cols[0]]) - reach
-            self.hi = np.array([rows[-1], cols[-1]]) + reach + 1            # exclusive
         else:
             metres, radians = (float(v) for v in opts.window)
             n = int(math.ceil(radians / step))
             self.step = step
             self.thetas = guess[2] + np.arange(-n, n + 1) * step
-            landing = guess[:2] + _rotate(guess[2], centre)      # c at the guess, in A's frame
-            row, col = a.grid_coordinates(landing)
+            # the poses within ``metres`` of the guess's translation at every angle of the window:
+            # c lands within that distance of guess + R(theta) c, an arc when c is far from B's origin
+            landing = guess[:2] + np.stack([_rotate(t, centre) for t in self.thetas])
+            rows_, cols_ = a.grid_coordinates(landing)
             span = int(math.ceil(metres / res))
-            self.lo = np.array([math.floor(row) - span, math.floor(col) - span])
-            self.hi = np.array([math.floor(row) + span + 1, math.floor(col) + span + 1])
+            lo = np.array([math.floor(rows_.min()) - span, math.floor(cols_.min()) - span])
+            hi = np.array([math.floor(rows_.max()) + span + 1, math.floor(cols_.max()) + span + 1])
+            self.lo, self.hi = np.maximum(self.lo, lo), np.minimum(self.hi, hi)
 
     @property
     def size(self):
@@ -393,6 +397,9 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
     centre = walls.mean(axis=0)
     radius = float(np.sqrt(((np.concatenate([walls, free]) - centre) ** 2).sum(axis=1).max()))
     lattice = _Lattice(a, centre, radius, opts, guess)
+    if np.any(lattice.hi <= lattice.lo):
+        raise InvalidOptionError(f"no pose within the search window {opts.window!r} around the guess "
+                                 f"{tuple(float(v) for v in guess)} puts B on A's known cells")
     span = int((lattice.hi - lattice.lo).max())
     levels = min(MAX_LEVEL, max(int(math.ceil(math.log2(max(span, 1)))) - 2, 0))
     if lattice.size <= SMALL_LATTICE:

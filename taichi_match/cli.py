@@ -160,7 +160,8 @@ def _align(args):
         for k, h in enumerate(res.hypotheses):
             hx, hy, ht = h.pose
             print(f"{'searched' if k == 0 else 'runner-up':14} x={hx:+.4f} m  y={hy:+.4f} m  theta={ht:+.5f} rad  "
-                  f"score {h.score:.1f}" + (f" ({h.score / res.hypotheses[0].score:.2f} of the best)" if k else ""))
+                  f"score {h.score:.1f}" + (f" ({h.score / res.hypotheses[0].score:.2f} of the best)"
+                                            if k and res.hypotheses[0].score > 0 else ""))
         print("covariance (x, y, theta), calibrated:")
         print(np.array2string(cov, precision=6))
         for d in res.degenerate:
@@ -357,14 +358,22 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
-def _require_matplotlib():
-    """--plot's dependency, checked before any work (a missing one is bad input, exit 2)."""
+def _check_picture(args):
+    """--plot checked before any work (bad input, exit 2): matplotlib there, a .png, .pdf or .svg
+    file in an existing folder, and never one of the input maps or their images."""
     import importlib.util
 
-    if importlib.util.find_spec("matplotlib") is None:
-        from taichi_match import InvalidOptionError
+    from taichi_match import InvalidOptionError
+    from taichi_match.io import read_map_yaml
+    from taichi_match.plots import check_picture_path
 
+    if importlib.util.find_spec("matplotlib") is None:
         raise InvalidOptionError("--plot needs matplotlib: pip install 'taichi-match[plots]'")
+    check_picture_path(args.plot)
+    inputs = [args.map_a, args.map_b]
+    inputs += [read_map_yaml(path)["image"] for path in inputs if path.lower().endswith((".yaml", ".yml"))]
+    if os.path.exists(args.plot) and any(os.path.exists(p) and os.path.samefile(p, args.plot) for p in inputs):
+        raise InvalidOptionError(f"refusing to write the picture over {args.plot!r}: it is an input")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -418,7 +427,7 @@ def main(argv=None):
     align.add_argument("--optimizer", choices=("newton", "bfgs"), help="default: newton (nearest), bfgs (bilinear)")
     align.add_argument("--prior-weight", type=float, help="K of eq. (8)")
     align.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")
-    align.add_argument("--max-iterations", type=int)
+    align.add_argument("--max-iterations", type=int, help="optimiser iterations at the coarsest level (0: none)")
     align.set_defaults(func=_align)
     merge = sub.add_parser("merge", help="fuse map B into map A's frame and save a map_server map")
     _add_map_arguments(merge)
@@ -476,7 +485,7 @@ def main(argv=None):
 
     try:
         if args.command == "align" and args.plot:
-            _require_matplotlib()
+            _check_picture(args)
         return args.func(args)
     except KeyboardInterrupt:
         print("taichi-match: interrupted", file=sys.stderr)

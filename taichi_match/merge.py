@@ -9,9 +9,11 @@ saw through fuses to about 1/2, unknown in a map_server file (on the Intel pair 
 pose 66 % of A's occupied cells stay occupied, all of them with "max").
 """
 
+import math
+
 import numpy as np
 
-from ._errors import InvalidOptionError, InvalidPoseError
+from ._errors import InvalidMapError, InvalidOptionError, InvalidPoseError
 from ._grid import GridMap
 from ._se2 import as_pose, inverse, transform_points
 from .io import MAX_MAP_CELLS
@@ -36,14 +38,22 @@ def sample(grid: GridMap, points):
 def merge_maps(a: GridMap, b: GridMap, pose_a2b, *, resolution=None, fusion: str = "max") -> GridMap:
     """One map in A's frame covering both maps, B placed by ``pose_a2b`` (r_A2B).
 
-    Each cell of the result (axis-aligned in A's frame, A's resolution unless given) takes A's and
-    B's cells at its centre (nearest cell). Where both are known they are fused (``fusion``:
-    "max", p = max(p_A, p_B); "log-odds", p = sigmoid(logit(p_A) + logit(p_B)), the update of an
-    occupancy grid with independent measurements and a prior of 1/2; see the module docstring);
-    where one is known it is kept; where neither is, the cell stays unknown.
+    Each cell of the result is axis-aligned in A's frame, at A's resolution unless given. With
+    ``fusion`` "max" it takes the largest known probability of A's and B's cells within it (a
+    lattice of points over the cell, one per cell of the finer map: a wall thinner than a merged
+    cell stays a wall); with "log-odds" A's and B's cells at its centre, p = sigmoid(logit(p_A) +
+    logit(p_B)) where both are known, the update of an occupancy grid with independent
+    measurements and a prior of 1/2 (see the module docstring). Where one map is known it is
+    kept; where neither is, the cell stays unknown.
     """
     if fusion not in FUSIONS:
         raise InvalidOptionError(f"fusion must be one of {FUSIONS}; got {fusion!r}")
+    for name, grid in (("a", a), ("b", b)):
+        if not isinstance(grid, GridMap):
+            raise InvalidMapError(f"{name} must be a GridMap; got {type(grid).__name__}")
+    if resolution is not None and not (isinstance(resolution, (int, float)) and math.isfinite(resolution)
+                                       and resolution > 0):
+        raise InvalidOptionError(f"resolution must be a finite number of metres > 0 or None; got {resolution!r}")
     pose = as_pose(pose_a2b, "pose_a2b")
     res = a.resolution if resolution is None else float(resolution)
     corners_b = _corners(b)
@@ -58,14 +68,33 @@ def merge_maps(a: GridMap, b: GridMap, pose_a2b, *, resolution=None, fusion: str
     cols, rows = np.maximum(np.rint(size).astype(int), 1)
     out = GridMap(np.zeros((rows, cols)), res, (lo[0], lo[1]))
     centres = out.cell_centres()
+    if fusion == "max":
+        # each map's cells within a merged cell, at least one sample per cell of the finer map:
+        # a wall thinner than a merged cell stays a wall
+        fused = _max_over_cell(a, centres, res, (0.0, 0.0, 0.0))
+        np.fmax(fused, _max_over_cell(b, centres, res, pose), out=fused)   # fmax: NaN only where both are
+        return out.with_prob(fused)
     p_a = sample(a, centres)
     p_b = sample(b, transform_points(inverse(pose), centres))
-    if fusion == "max":
-        return out.with_prob(np.fmax(p_a, p_b))            # fmax: NaN (unknown) only where both are
     la = _logit(p_a)
     lb = _logit(p_b)
     fused = np.where(np.isnan(p_a), lb, np.where(np.isnan(p_b), la, la + lb))
     return out.with_prob(1.0 / (1.0 + np.exp(-fused)))
+
+
+def _max_over_cell(grid, centres, res, pose):
+    """The largest known probability of ``grid`` (placed by ``pose`` in the merged frame) over a
+    k x k lattice of points spread over each merged cell, k enough for one per cell of ``grid``;
+    NaN where none is known."""
+    k = max(int(math.ceil(res / grid.resolution - 1e-9)), 1)
+    back = inverse(pose)
+    out = None
+    for i in range(k):
+        for j in range(k):
+            offset = (np.array([j, i]) + 0.5) / k * res - 0.5 * res
+            p = sample(grid, transform_points(back, centres + offset))
+            out = p if out is None else np.fmax(out, p, out=out)
+    return out
 
 
 def _logit(p):

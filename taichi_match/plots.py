@@ -7,8 +7,8 @@ import numpy as np
 from ._errors import InvalidOptionError
 from ._grid import GridMap
 
-__all__ = ["map_rgba", "draw_map", "draw_overlay", "save_overlay", "save_surface", "save_maps", "save_merge",
-           "save_trajectories"]
+__all__ = ["map_rgba", "draw_map", "draw_overlay", "check_picture_path", "save_overlay", "save_surface", "save_maps",
+           "save_merge", "save_trajectories"]
 
 UNKNOWN_RGB = (0.72, 0.82, 0.97)       # the paper draws unknown cells in blue
 
@@ -83,12 +83,21 @@ def draw_overlay(ax, a: GridMap, b: GridMap, pose, *, covariance=None, title=Non
         ax.set_title(title, fontsize=10)
 
 
-def save_overlay(path, a: GridMap, b: GridMap, initial_pose, result, *, title=""):
-    """Two panels, as the paper's Figs. 6-9: the initial setting and the final solution, saved to
-    ``path``, whose extension (.png, .pdf, .svg) says the format."""
+def check_picture_path(path):
+    """Raise InvalidOptionError unless ``path`` names a .png, .pdf or .svg file (its format) in an
+    existing folder."""
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext not in (".png", ".pdf", ".svg") or os.path.isdir(path):
         raise InvalidOptionError(f"the picture must be a .png, .pdf or .svg file; got {os.fspath(path)!r}")
+    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
+    if not os.path.isdir(folder):
+        raise InvalidOptionError(f"no folder {folder!r} for the picture {os.fspath(path)!r}")
+
+
+def save_overlay(path, a: GridMap, b: GridMap, initial_pose, result, *, title=""):
+    """Two panels, as the paper's Figs. 6-9: the initial setting and the final solution, saved to
+    ``path``, whose extension (.png, .pdf, .svg) says the format."""
+    check_picture_path(path)
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
     x, y, t = initial_pose
@@ -140,7 +149,9 @@ def save_maps(path, raw: GridMap, blurred: GridMap, *, title=""):
 
 
 def save_merge(path, a: GridMap, b: GridMap, merged: GridMap, *, title=""):
-    """Three panels: A, B (each in its own frame) and ``merged`` (``merge.merge_maps``, frame A)."""
+    """Three panels: A, B (each in its own frame) and ``merged`` (``merge.merge_maps``, frame A),
+    saved to ``path`` (.png, .pdf or .svg)."""
+    check_picture_path(path)
     plt = _plt()
     fig, axes = plt.subplots(1, 3, figsize=(15, 5.2))
     for ax, grid, label in ((axes[0], a, "A"), (axes[1], b, "B"), (axes[2], merged, "B merged into A")):

@@ -184,3 +184,48 @@ def test_plot_without_matplotlib_is_bad_input_before_any_work(pair, tmp_path, ca
     assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--plot", str(tmp_path / "o.png")]) == 2
     err = capsys.readouterr()
     assert "--plot needs matplotlib" in err.err and err.out == "" and not (tmp_path / "o.png").exists()
+
+
+def test_a_bad_plot_path_is_bad_input_before_any_work(pair, tmp_path, capsys):
+    a, b, _ = pair
+    for plot in (str(tmp_path), str(tmp_path / "o.jpg"), str(tmp_path / "no" / "o.png")):
+        assert main(["align", str(a), str(b), "--initial", "0", "0", "0", "--json", "--plot", plot]) == 2
+        out = capsys.readouterr()
+        assert out.out == "" and "picture" in out.err
+
+
+def test_plot_never_writes_over_an_input(tmp_path, capsys):
+    grid = rasterize(room_scene, (60, 60), 0.1, (-3.0, -3.0))
+    io.write_ros_map(grid, tmp_path / "m.yaml", mode="scale")          # its image is m.png
+    image = tmp_path / "m.png"
+    before = image.read_bytes()
+    assert main(["align", str(tmp_path / "m.yaml"), str(tmp_path / "m.yaml"), "--initial", "0", "0", "0",
+                 "--plot", str(image)]) == 2
+    assert "input" in capsys.readouterr().err and image.read_bytes() == before
+
+
+def test_a_best_search_score_of_zero_prints_without_dividing_by_it(tmp_path, capsys):
+    empty = io.GridMap(np.zeros((40, 40)), 0.1)                         # all free: nothing to meet B's walls
+    io.write_ros_map(empty, tmp_path / "a.yaml")
+    io.write_ros_map(rasterize(room_scene, (60, 60), 0.1, (-3.0, -3.0)), tmp_path / "b.yaml")
+    assert main(["align", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml")]) == 1
+    out = capsys.readouterr()
+    assert "not accepted" in out.out and out.err == ""
+
+
+def test_merge_keeps_the_walls_of_a_finer_b():
+    a = io.GridMap(np.zeros((20, 20)), 0.1)                              # 2 x 2 m, all free
+    fine = np.zeros((40, 40))
+    fine[16, 5:35] = 1.0                                                 # a wall one fine cell thick
+    b = io.GridMap(fine, 0.05)
+    merged = merge_maps(a, b, (0.0, 0.0, 0.0))
+    # the fine wall, y in [0.80, 0.85) and x in [0.25, 1.75) m, lies in the merged row 8, columns 2-17
+    # (its cells miss every merged cell's centre: one sample per merged cell would lose it all)
+    assert np.all(merged.prob[8, 2:18] == 1.0) and np.count_nonzero(merged.prob == 1.0) == 16
+
+
+@pytest.mark.parametrize("resolution", [0, -1.0, float("nan"), "x"])
+def test_merge_refuses_a_bad_resolution(resolution):
+    a = io.GridMap(np.zeros((4, 4)), 0.1)
+    with pytest.raises(InvalidOptionError, match="resolution"):
+        merge_maps(a, a, (0.0, 0.0, 0.0), resolution=resolution)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from taichi_match import GridMap
+from taichi_match import GridMap, InvalidOptionError
 from taichi_match._grid import trinary
 from taichi_match._search import RUNNER_UP_FRACTION, SearchOptions, _Lattice, _points, lattice_cells, search
-from taichi_match._se2 import transform_points, wrap_angle
+from taichi_match._se2 import compose, transform_points, wrap_angle
 from taichi_match.scenes import corridor
 
 from conftest import rasterize, room_scene
@@ -110,10 +110,27 @@ def test_finds_the_room_from_any_angle_without_a_guess(theta):
 
 def test_pushing_b_off_a_scores_nothing():
     a, b = room_pair((0.4, -0.3, 0.6))
-    far = search(a, b, (40.0, 0.0, 0.0), SearchOptions(window=(0.0, 0.0)))
-    assert far.hypotheses[0].score == 0.0
+    # off A every pose scores 0 (the canvas is 0 there), so the lattice stops where B can no
+    # longer touch A, and a window wholly off A is refused rather than searched
     walls, _ = _points(trinary(b))
+    with pytest.raises(InvalidOptionError, match="puts B on A"):
+        search(a, b, (40.0, 0.0, 0.0), SearchOptions(window=(0.0, 0.0)))
     assert search(a, b).hypotheses[0].score > 0.25 * len(walls)
+
+
+def test_a_window_is_around_the_guess_at_every_angle():
+    """B's walls far from its frame's origin: a guess with the exact translation and an angle 10
+    degrees off puts B's walls metres away, but the window (1 m, 15 degrees) around the guess holds
+    the truth, and the search finds it."""
+    truth = (0.4, -0.3, 0.6)
+    a, b = room_pair(truth)
+    far = GridMap(b.prob, b.resolution, (b.origin[0] + 30.0, b.origin[1]))      # B's cells 30 m from its origin
+    shifted = compose(truth, (-30.0, 0.0, 0.0))                                   # the same placement of its cells
+    guess = (shifted[0], shifted[1], shifted[2] + math.radians(10.0))
+    found = search(a, far, guess, SearchOptions(window=(1.0, math.radians(15.0))))
+    pose = found.hypotheses[0].pose
+    assert np.allclose(transform_points(pose, far.cell_centres(0, 0)[None]),
+                       transform_points(shifted, far.cell_centres(0, 0)[None]), atol=0.3)
 
 
 def test_corridor_any_x_along_it():
@@ -256,3 +273,12 @@ def test_the_gdc_cross_run_pair_without_a_guess():
     result = match(a, b)
     assert result.accepted and result.search_complete
     assert math.hypot(result.pose[0] - 0.10, result.pose[1] - 0.10) <= 0.05 and abs(result.pose[2]) <= math.radians(0.5)
+
+
+@pytest.mark.parametrize("window", [(1.0, 1.0, 1.0), 1.0, "ab", (None, 1.0), (1.0, float("nan"))])
+def test_a_malformed_search_window_is_our_error(window):
+    from taichi_match import match
+
+    a, b = room_pair((0.4, -0.3, 0.6))
+    with pytest.raises(InvalidOptionError, match="search_window"):
+        match(a, b, (0.4, -0.3, 0.6), search_window=window)
