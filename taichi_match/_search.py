@@ -75,7 +75,9 @@ DEFAULT_RESOLUTION = 0.2   # metres
 class SearchOptions:
     """Settings of a search. Units: metres, radians.
 
-    window : (metres, radians) around the guess; None searches every pose where the maps overlap.
+    window : (metres, radians) around the guess: every angle within that many radians of the
+        guess's, each with every translation within that many metres of the guess's along x and y
+        (as far as B can touch A); None searches every pose where the maps overlap.
     blur : sigma of A's envelope in the score, metres; None: 0.1 m or one cell of A as searched
         if wider (0.2 m at the default resolution).
     separation : (metres, radians): lattice poses closer than this in both (c's position, angle)
