@@ -381,7 +381,8 @@ class Matcher:
                 search_window = window
             found = search(a, b, guess, SearchOptions(window=search_window), engine=opts.engine)
             hypotheses, complete = tuple(found.hypotheses), found.complete
-            initial_pose = hypotheses[0].pose
+            # none: the window holds no pose that puts B on A, and the local match from the guess says so
+            initial_pose = hypotheses[0].pose if hypotheses else guess
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
         prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence)

@@ -112,7 +112,8 @@ class Hypothesis:
 
 @dataclasses.dataclass(frozen=True)
 class SearchResult:
-    """The distinct hypotheses, best first, and what the search did."""
+    """The distinct hypotheses, best first (none when no pose of the window puts B on A), and what
+    the search did."""
 
     hypotheses: list
     nodes: int              # lattice nodes scored (bounds and leaves)
@@ -399,9 +400,8 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
     centre = walls.mean(axis=0)
     radius = float(np.sqrt(((np.concatenate([walls, free]) - centre) ** 2).sum(axis=1).max()))
     lattice = _Lattice(a, centre, radius, opts, guess)
-    if np.any(lattice.hi <= lattice.lo):
-        raise InvalidOptionError(f"no pose within the search window {opts.window!r} around the guess "
-                                 f"{tuple(float(v) for v in guess)} puts B on A's known cells")
+    if np.any(lattice.hi <= lattice.lo):         # no pose of the window puts B on A: nothing to find
+        return SearchResult([], 0, 0, lattice.step, a.resolution, True)
     span = int((lattice.hi - lattice.lo).max())
     levels = min(MAX_LEVEL, max(int(math.ceil(math.log2(max(span, 1)))) - 2, 0))
     if lattice.size <= SMALL_LATTICE:

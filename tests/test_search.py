@@ -111,10 +111,14 @@ def test_finds_the_room_from_any_angle_without_a_guess(theta):
 def test_pushing_b_off_a_scores_nothing():
     a, b = room_pair((0.4, -0.3, 0.6))
     # off A every pose scores 0 (the canvas is 0 there), so the lattice stops where B can no
-    # longer touch A, and a window wholly off A is refused rather than searched
+    # longer touch A: a window wholly off A holds no hypothesis, and the match says there is no overlap
     walls, _ = _points(trinary(b))
-    with pytest.raises(InvalidOptionError, match="puts B on A"):
-        search(a, b, (40.0, 0.0, 0.0), SearchOptions(window=(0.0, 0.0)))
+    far = search(a, b, (40.0, 0.0, 0.0), SearchOptions(window=(0.0, 0.0)))
+    assert far.hypotheses == [] and far.nodes == 0
+    from taichi_match import Status, match
+
+    result = match(a, b, (40.0, 0.0, 0.0), search_window=(1.0, 0.1))
+    assert not result.accepted and result.status is Status.NO_OVERLAP
     assert search(a, b).hypotheses[0].score > 0.25 * len(walls)
 
 
