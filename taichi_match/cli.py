@@ -478,9 +478,10 @@ def main(argv=None):
     if getattr(args, "trials", 1) < 1 or getattr(args, "covariance_trials", 2) < 2:
         parser.error("--trials must be >= 1 and --covariance-trials >= 2")
     if getattr(args, "degrees", False):
-        for name in ("initial", "pose"):
-            if getattr(args, name, None) is not None:
-                setattr(args, name, [*getattr(args, name)[:2], math.radians(getattr(args, name)[2])])
+        name = "initial" if args.command == "align" else "pose"
+        if getattr(args, name) is None:
+            parser.error(f"--degrees needs --{name}: it says how to read --{name}'s THETA")
+        setattr(args, name, [*getattr(args, name)[:2], math.radians(getattr(args, name)[2])])
     from taichi_match import TaichiMatchError
 
     try:

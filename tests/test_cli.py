@@ -175,6 +175,13 @@ def test_degrees_reads_theta_in_degrees(pair, capsys):
     assert np.allclose(result["pose"], truth, atol=0.05)
 
 
+def test_degrees_without_an_angle_to_read_is_bad_input(pair, capsys):
+    a, b, _ = pair
+    with pytest.raises(SystemExit) as stop:
+        main(["align", str(a), str(b), "--degrees"])
+    assert stop.value.code == 2 and "--degrees needs --initial" in capsys.readouterr().err
+
+
 def test_plot_without_matplotlib_is_bad_input_before_any_work(pair, tmp_path, capsys, monkeypatch):
     import importlib.util
 
