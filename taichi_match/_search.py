@@ -215,8 +215,7 @@ class _Lattice:
         self.centre, self.radius = centre, radius
         self._a = a
         # c's cells from which B can touch A's known cells: beyond them every pose scores 0
-        known = ~np.isnan(a.prob)
-        rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+        rows, cols = np.flatnonzero(a.known.any(axis=1)), np.flatnonzero(a.known.any(axis=0))
         reach = int(math.ceil(radius / res)) + 1
         self.lo = np.array([rows[0], cols[0]]) - reach
         self.hi = np.array([rows[-1], cols[-1]]) + reach + 1            # exclusive
