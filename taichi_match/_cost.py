@@ -38,7 +38,9 @@ class AffineMap:
     a 5 x 6 matrix (a few NumPy calls instead of thirty: this runs before every launch).
     """
 
-    def __init__(self, a: GridMap, b: GridMap, pad=PAD):
+    def __init__(self, a: GridMap, b: GridMap, pad=PAD, b_pad=0):
+        """``pad``: the ring around A's grid; ``b_pad``: around B's, whose cell (i, j) is then B's
+        cell (i - b_pad, j - b_pad)."""
         # plain floats (the same IEEE arithmetic as NumPy's scalars, a tenth of the time)
         bx, by, b_yaw = (float(v) for v in b.corner_pose)
         ax, ay, a_yaw = (float(v) for v in a.corner_pose)
@@ -53,8 +55,9 @@ class AffineMap:
             cy = s * bx + c * by + y - ay * one
             u0 = ca * cx + sa * cy + pad * one
             v0 = ca * cy - sa * cx + pad * one
-            # cell centres: + 1/2 cell along both of B's axes
-            return [m00, -m10, u0 + 0.5 * (m00 - m10), m10, m00, v0 + 0.5 * (m10 + m00)]
+            # cell centres: + 1/2 cell along both of B's axes (less B's ring)
+            centre = 0.5 - b_pad
+            return [m00, -m10, u0 + centre * (m00 - m10), m10, m00, v0 + centre * (m10 + m00)]
 
         self._matrix = np.array([coefficients(*row) for row in ((1.0, 0.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0, 0.0),
                                  (0.0, 0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 0.0, 1.0))])

@@ -22,10 +22,12 @@ import numpy as np
 
 from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
 
-__all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "FAR"]
+__all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "far"]
 
 # near_squared_distance's value where no wall is within reach
-FAR = np.iinfo(np.int32).max
+def far(squared: np.ndarray) -> int:
+    """``near_squared_distance``'s value where no wall is within reach: its dtype's largest."""
+    return int(np.iinfo(squared.dtype).max)
 
 _KERNELS = {}
 
@@ -73,24 +75,33 @@ def _build(ti):
         @ti.kernel
         def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
                   weights: ti.types.ndarray(dtype=ti.f64, ndim=1), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                  reach_: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(ndim=2)):
-            # each wall writes into the disc of radius reach around it its squared distance (the
-            # least wins) or, weighted, weight * profile[squared distance] (the largest wins): an
-            # extremum, the same whatever the order of the writes
+                  first: ti.types.ndarray(dtype=ti.i32, ndim=1), half: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                  beyond: ti.types.ndarray(dtype=ti.i64, ndim=1), out: ti.types.ndarray(ndim=2), dt: ti.template()):
+            # a row of the output per work item: the walls within reach rows of it (walls sorted by
+            # row, ``first[r]`` the first on row r or later) each write the chord of their disc
+            # that crosses it, ``half[d + reach]`` cells either side on row d away, their squared
+            # distance (the least wins) or, weighted, weight * profile[squared distance] (the
+            # largest wins); the row belongs to its work item, so no atomics, and the result does
+            # not depend on the order of the writes
             h, w = out.shape[0], out.shape[1]
-            reach = reach_[0]
-            for k, di in ti.ndrange(rows_.shape[0], 2 * reach + 1):
-                i = rows_[k] + di - reach
-                if 0 <= i < h:
-                    dy2 = (di - reach) * (di - reach)
-                    for dj in range(-reach, reach + 1):
-                        j = cols_[k] + dj
-                        q = dy2 + dj * dj
-                        if 0 <= j < w and q <= reach * reach:
-                            if ti.static(weighted):
-                                ti.atomic_max(out[i, j], weights[k] * profile[q])
-                            else:
-                                ti.atomic_min(out[i, j], q)
+            reach = (half.shape[0] - 1) // 2
+            for i in range(h):
+                for j in range(w):
+                    if ti.static(weighted):
+                        out[i, j] = 0.0
+                    else:
+                        out[i, j] = ti.cast(beyond[0], dt)
+                for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
+                    di = rows_[k] - i
+                    dy2 = di * di
+                    chord = half[di + reach]
+                    c = cols_[k]
+                    for j in range(ti.max(c - chord, 0), ti.min(c + chord + 1, w)):
+                        q = dy2 + (j - c) * (j - c)
+                        if ti.static(weighted):
+                            out[i, j] = ti.max(out[i, j], weights[k] * profile[q])
+                        else:
+                            out[i, j] = ti.cast(ti.min(ti.cast(out[i, j], ti.i32), q), dt)
 
         return stamp
 
@@ -131,10 +142,7 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
     h, w = f.shape
     d = np.empty((h, w))
     with kernel_lock():
-        ensure_initialized()
-        if "kernels" not in _KERNELS:
-            _KERNELS["kernels"] = _build(_STATE["ti"])
-        rows = _KERNELS["kernels"][0]
+        rows = _built()[0]
         # down the columns as rows of the transpose: both passes read memory in order
         f_t = _SCRATCH.get("f_t", (w, h), np.float64)
         f_t[...] = f.T
@@ -146,28 +154,63 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
     return d
 
 
-def near_squared_distance(rows, cols, shape, reach: int) -> np.ndarray:
-    """The squared Euclidean distance, in cells, from every cell of a grid of ``shape`` to the
-    nearest of the walls at (``rows``, ``cols``), where it is at most ``reach`` cells; ``FAR``
-    elsewhere. int32, exact (``squared_distance``'s value within reach). Each wall stamps the disc
-    of radius ``reach`` around it: for the few walls of a laser-built map (0.1-2 % of its cells)
-    and a short reach, a fraction of the exact transform's time (which visits every cell twice
-    and keeps a lower envelope of parabolas per line)."""
+_TAICHI_TYPES = {}      # NumPy dtype name -> Taichi's, filled when the kernels are built
+
+
+def _built():
+    """The kernels (built once, Taichi initialised and the kernel lock held)."""
+    ensure_initialized()
+    if "kernels" not in _KERNELS:
+        ti = _STATE["ti"]
+        _KERNELS["kernels"] = _build(ti)
+        _TAICHI_TYPES.update(uint8=ti.u8, uint16=ti.u16, uint32=ti.u32, float64=ti.f64)
+    return _KERNELS["kernels"]
+
+
+def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype):
+    """The stamp kernel's output of ``shape`` for walls at (``rows``, ``cols``) (in any order);
+    unweighted, ``far(out)`` beyond the reach."""
     rows = np.ascontiguousarray(rows, dtype=np.int32)
     cols = np.ascontiguousarray(cols, dtype=np.int32)
     reach = int(reach)
     if rows.shape != cols.shape or rows.ndim != 1 or not 0 <= reach <= 2**14:
         raise ValueError(f"rows and cols must be 1-D of one length and 0 <= reach <= 16384; got {rows.shape}, "
                          f"{cols.shape}, {reach}")
-    d2 = np.full(tuple(int(n) for n in shape), FAR, dtype=np.int32)
-    if len(rows) == 0 or d2.size == 0:
-        return d2
+    shape = tuple(int(n) for n in shape)
+    if len(rows) == 0 or 0 in shape:
+        return np.full(shape, 0 if weights is not None else np.iinfo(dtype).max, dtype=dtype)
+    order = None
+    if np.any(rows[1:] < rows[:-1]):
+        order = np.argsort(rows, kind="stable")
+        rows, cols = rows[order], cols[order]
+    first = np.searchsorted(rows, np.arange(shape[0] + 1)).astype(np.int32)
+    d = np.arange(-reach, reach + 1)
+    half = np.floor(np.sqrt(reach * reach - d * d)).astype(np.int32)     # the disc's chord on row d away
+    while np.any(half * half + d * d > reach * reach):                    # (sqrt rounding up at squares)
+        half -= (half * half + d * d > reach * reach)
+    beyond = np.array([0 if weights is not None else np.iinfo(dtype).max], dtype=np.int64)
+    weights = np.zeros(1) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    if order is not None and len(weights) > 1:
+        weights = weights[order]
+    out = np.empty(shape, dtype=dtype)
     with kernel_lock():
-        ensure_initialized()
-        if "kernels" not in _KERNELS:
-            _KERNELS["kernels"] = _build(_STATE["ti"])
-        _launch(_KERNELS["kernels"][1], (rows, cols, np.zeros(1), np.zeros(1), np.array([reach], dtype=np.int32), d2), None)
-    return d2
+        _launch(_built()[kernel], (rows, cols, weights, np.ascontiguousarray(profile, dtype=np.float64),
+                                              first, half, beyond, out), _TAICHI_TYPES[np.dtype(dtype).name])
+    return out
+
+
+def near_squared_distance(rows, cols, shape, reach: int) -> np.ndarray:
+    """The squared Euclidean distance, in cells, from every cell of a grid of ``shape`` to the
+    nearest of the walls at (``rows``, ``cols``), where it is at most ``reach`` cells; ``far``
+    elsewhere. Exact (``squared_distance``'s value within reach), in the smallest unsigned integer
+    type that holds reach**2 + 1 (uint8 for the envelope of laser submaps: a quarter of int32's
+    memory, whose first touch is most of the cost). Each wall stamps the disc
+    of radius ``reach`` around it: for the few walls of a laser-built map (0.1-2 % of its cells)
+    and a short reach, a fraction of the exact transform's time (which visits every cell twice
+    and keeps a lower envelope of parabolas per line)."""
+    reach = int(reach)
+    dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
+    return _stamp(1, rows, cols, None, np.zeros(1), shape, reach, dtype)
 
 
 def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.ndarray) -> np.ndarray:
@@ -175,19 +218,7 @@ def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.n
     profile[squared distance]`` per cell of a grid of ``shape`` (0 where none is within reach):
     the upper envelope of grey walls, each wall stamping its disc (float64; ``profile`` has
     reach**2 + 1 entries)."""
-    rows = np.ascontiguousarray(rows, dtype=np.int32)
-    cols = np.ascontiguousarray(cols, dtype=np.int32)
-    out = np.zeros(tuple(int(n) for n in shape))
-    if len(rows) == 0 or out.size == 0:
-        return out
-    with kernel_lock():
-        ensure_initialized()
-        if "kernels" not in _KERNELS:
-            _KERNELS["kernels"] = _build(_STATE["ti"])
-        _launch(_KERNELS["kernels"][2], (rows, cols, np.ascontiguousarray(weights, dtype=np.float64),
-                                         np.ascontiguousarray(profile, dtype=np.float64),
-                                         np.array([reach], dtype=np.int32), out), None)
-    return out
+    return _stamp(2, rows, cols, np.asarray(weights, dtype=np.float64), profile, shape, reach, np.float64)
 
 
 def wall_distance(walls: np.ndarray) -> np.ndarray:

@@ -90,32 +90,32 @@ def envelope_profile(reach: int, ratio: float) -> np.ndarray:
     return np.append(profile, 0.0)
 
 
-def near_conflict_grid(prob: np.ndarray, squared: np.ndarray, reach: int, ratio: float,
-                       unknown: np.ndarray) -> np.ndarray:
+def near_conflict_grid(prob, squared: np.ndarray, reach: int, ratio: float, unknown: np.ndarray) -> np.ndarray:
     """``conflict_grid`` of a map whose walls are all 1, from the squared distances to them that
     ``_distance.near_squared_distance`` gives within ``reach`` (``envelope_reach``): hi =
     max(p, ``envelope_profile``) within reach, p beyond, where the envelope is below 2**-25 and
     changes nothing in float32. The same grid bit for bit as from the exact transform and the
-    blur, in one Taichi launch."""
-    h, w = prob.shape
+    blur, in one Taichi launch. ``prob`` None: every known cell is 0 or 1 (a trinary map), so hi
+    is the envelope alone (1 on the walls)."""
+    h, w = squared.shape
     out = np.empty((h + 2 * PAD, w + 2 * PAD), dtype=np.float32)
     with kernel_lock():
         ensure_initialized()
         if "conflict" not in _KERNEL:
             _KERNEL["conflict"] = _build_conflict(_STATE["ti"])
-        _launch(_KERNEL["conflict"], (np.ascontiguousarray(prob, dtype=np.float64), np.ascontiguousarray(squared),
-                                      np.ascontiguousarray(unknown).view(np.uint8), envelope_profile(reach, ratio), out),
-                None)
+        p = np.zeros((0, 0)) if prob is None else np.ascontiguousarray(prob, dtype=np.float64)
+        _launch(_KERNEL["conflict"], (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8),
+                                      envelope_profile(reach, ratio), out), prob is not None)
     return out
 
 
 def _build_conflict(ti):
     @ti.kernel
-    def conflict(prob: ti.types.ndarray(dtype=ti.f64, ndim=2), squared: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    def conflict(prob: ti.types.ndarray(dtype=ti.f64, ndim=2), squared: ti.types.ndarray(ndim=2),
                  unknown: ti.types.ndarray(dtype=ti.u8, ndim=2), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                 out: ti.types.ndarray(dtype=ti.f32, ndim=2)):
+                 out: ti.types.ndarray(dtype=ti.f32, ndim=2), grey: ti.template()):
         far = profile.shape[0] - 1
-        h, w = prob.shape[0], prob.shape[1]
+        h, w = squared.shape[0], squared.shape[1]
         for i in range(out.shape[0]):                       # a row per work item, its cells in order
             if i < PAD or i >= h + PAD:
                 for j in range(out.shape[1]):
@@ -125,9 +125,11 @@ def _build_conflict(ti):
                     out[i, j] = ti.f32(_OFF_MAP)
                     out[i, w + PAD + j] = ti.f32(_OFF_MAP)
                 for j in range(w):
-                    envelope = profile[ti.min(squared[i - PAD, j], far)]
+                    hi = profile[ti.min(ti.cast(squared[i - PAD, j], ti.i64), far)]
                     known = unknown[i - PAD, j] == 0         # (fast math takes p == p for true on NaN)
-                    c = ti.cast(1.0 - ti.select(known, ti.max(prob[i - PAD, j], envelope), envelope), ti.f32)
+                    if ti.static(grey):
+                        hi = ti.select(known, ti.max(prob[i - PAD, j], hi), hi)
+                    c = ti.cast(1.0 - hi, ti.f32)
                     out[i, j + PAD] = ti.select(known, c, ti.f32(-1.0) - c)
 
     return conflict
@@ -212,8 +214,8 @@ class EnvelopeEngine:
         self._grid_a, self._grid_b = a.conflict, b.conflict
         self._points_b = b.wall_array(unknown_cost)
         self._points_a = a.wall_array(unknown_cost)
-        self._b2a = AffineMap(a.lower, b.lower)
-        self._a2b = AffineMap(b.lower, a.lower)
+        self._b2a = AffineMap(a.frame, b.frame)
+        self._a2b = AffineMap(b.frame, a.frame)
         self._launcher = Launcher(_kernel, (self._grid_a, self._points_b, None, self._grid_b, self._points_a, None))
 
     def __call__(self, poses, count="all"):

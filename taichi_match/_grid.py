@@ -20,7 +20,7 @@ import numpy as np
 
 from ._errors import InvalidMapError
 
-__all__ = ["GridMap", "MAX_CELLS", "cells", "trinary"]
+__all__ = ["GridMap", "MAX_CELLS", "cells", "trinary", "trinary_code", "trinary_values", "UNKNOWN", "FREE", "OCCUPIED"]
 
 MAX_CELLS = 2**31 - 1 - 4 * 65536      # cells of a map, padding included, must fit 32-bit indices
 
@@ -220,9 +220,25 @@ def trinary(grid: GridMap, *, occupied: float = 0.65, free: float = 0.196) -> Gr
     differences pull the minimum toward poses with less overlap (measured on laser-built submaps:
     bench/TUNING.md). Maps that are already trinary are unchanged.
     """
-    p = grid.prob
-    out = np.full(p.shape, np.nan)
-    with np.errstate(invalid="ignore"):
-        out[p > occupied] = 1.0
-        out[p < free] = 0.0
-    return grid._with_trusted(out)
+    return grid._with_trusted(trinary_values(trinary_code(grid.prob, occupied, free)))
+
+
+# ``trinary_code``'s values: a byte per cell, a ninth of the float64 map; known is nonzero
+UNKNOWN, FREE, OCCUPIED = 0, 1, 2
+
+
+def trinary_code(prob: np.ndarray, occupied: float = 0.65, free: float = 0.196) -> np.ndarray:
+    """``trinary``'s map as uint8 codes ``OCCUPIED`` (p > ``occupied``), ``FREE`` (p < ``free``)
+    and ``UNKNOWN`` (anything else, NaN included)."""
+    with np.errstate(invalid="ignore"):          # NaN compares False both times: UNKNOWN
+        code = (prob < free).view(np.uint8) * np.uint8(FREE)
+        code += (prob > occupied).view(np.uint8) * np.uint8(OCCUPIED)
+    return code
+
+
+def trinary_values(code: np.ndarray) -> np.ndarray:
+    """The float64 probabilities (1, 0, NaN) of ``trinary_code``'s codes."""
+    values = code.astype(np.float64)
+    values -= FREE                                    # FREE -> 0, OCCUPIED -> 1
+    np.copyto(values, np.nan, where=code == UNKNOWN)
+    return values

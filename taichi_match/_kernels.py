@@ -308,7 +308,7 @@ class Kernels(typing.NamedTuple):
     bilinear: object       # bilinear_rows: e, overlap and gradient sums with A interpolated
 
 
-_FAST = {}       # (kernel, count mode) -> (program, compiled kernel, compiled data), or None: no fast path
+_FAST = {}       # (kernel, count mode, dtypes) -> (program, compiled kernel, compiled data), or None: no fast path
 DIRECT_LAUNCH = True     # False: always Taichi's own call (for benchmarks)
 
 
@@ -326,14 +326,15 @@ def _launch(kernel, arrays, mode):
     internals differ from 1.7's, the ordinary call is used.
     """
     prog = _STATE["ti"].lang.impl.get_runtime().prog
-    fast = _FAST.get((kernel, mode), False) if DIRECT_LAUNCH else None
+    key = _fast_key(kernel, arrays, mode)
+    fast = _FAST.get(key, False) if DIRECT_LAUNCH else None
     if fast and fast[0] is prog and all(array.flags.c_contiguous for array in arrays):
         _, t_kernel, compiled = fast
         prog.launch_kernel(compiled, _context(t_kernel, arrays))
         return
     kernel(*arrays, *_templates(mode))             # (Taichi copies arrays that are not C-contiguous)
     if fast is False or (fast and fast[0] is not prog):
-        _FAST[(kernel, mode)] = _compiled(kernel, arrays, mode)
+        _FAST[key] = _compiled(kernel, arrays, mode)
 
 
 class Launcher:
@@ -395,13 +396,18 @@ class _BoundLaunch:
             prog.launch_kernel(self._compiled, self._ctx)
             return
         self._calls += 1
-        fast = _FAST.get((self._kernel, self._mode)) if self._calls > 1 else None
+        fast = _FAST.get(_fast_key(self._kernel, self._arrays, self._mode)) if self._calls > 1 else None
         if fast and fast[0] is prog:
             self._prog, t_kernel, self._compiled = fast
             self._ctx = _context(t_kernel, self._arrays)
             prog.launch_kernel(self._compiled, self._ctx)
             return
         _launch(self._kernel, self._arrays, self._mode)
+
+
+def _fast_key(kernel, arrays, mode):
+    """``_FAST``'s key: a kernel with an untyped array argument compiles once per dtype."""
+    return kernel, mode, tuple(array.dtype.num for array in arrays)
 
 
 def _context(t_kernel, arrays):

@@ -8,7 +8,6 @@ the conflict grid and the occupied cells that the envelope discrepancy (``_envel
 """
 
 import functools
-import weakref
 
 import numpy as np
 
@@ -16,9 +15,9 @@ from ._blur import blur, blur_everywhere, wall_transform
 from ._distance import near_squared_distance, near_weighted_envelope
 from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
-from ._grid import GridMap, trinary
+from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted, cells, trinary_code, trinary_values
 from ._kernels import PAD, TaichiEngine
-from ._pyramid import coarsen
+from ._pyramid import coarsen, halve_code
 from ._envelope import (EnvelopeEngine, NumpyEnvelope, conflict_grid, envelope_profile, envelope_reach, near_conflict_grid,
                         points_array, wall_points)
 from ._reference import NumpyBilinear, NumpyDiscrepancy
@@ -42,86 +41,127 @@ STAMP_WORK = 6
 
 
 class PreparedMap:
-    """``grid`` blurred (``blur_kind``, ``blur_width`` metres), with engine-ready arrays."""
+    """``grid`` blurred (``blur_kind``, ``blur_width`` metres), with engine-ready arrays.
+
+    With ``evidence="trinary"`` the map is kept as ``_grid.trinary_code`` (a byte per cell) and
+    the float64 trinary map is made only when asked for (``grid``): the arrays a prepared map keeps
+    are new memory, and on laser submaps its first touch (a page fault per 4 KiB) was most of the
+    preparation (measured: a kept float64 copy of a 0.9 M-cell submap 7-12 ms, its codes 1.3 ms).
+    """
 
     def __init__(self, grid: GridMap, blur_width: float, blur_kind: str = "gaussian", blur_growth: float = 1.0,
                  evidence: str = "probability"):
-        # Only a weak reference to the source map: the matcher caches prepared maps in a
-        # WeakKeyDictionary keyed by that map, and a strong one would keep both alive forever.
-        self._grid = weakref.ref(grid)
-        self._converted = None
-        if evidence == "trinary":               # the map as map_saver would write it (``trinary``)
-            grid = self._converted = trinary(grid)
-        elif evidence != "probability":
+        if evidence not in ("trinary", "probability"):
             raise InvalidOptionError(f"evidence must be 'trinary' or 'probability'; got {evidence!r}")
+        # The map's geometry, and for "probability" the map itself: a GridMap of its own over the
+        # caller's read-only array (no copy), since the matcher caches prepared maps in a
+        # WeakKeyDictionary keyed by the caller's map and a reference to it would keep both alive
+        self.frame = grid._with_trusted(grid.prob)
+        self._code = trinary_code(grid.prob) if evidence == "trinary" else None     # the map, for "trinary"
+        self._converted = None
         self.resolution = grid.resolution
         self.blur_width = float(blur_width)
         self.blur_kind = blur_kind
         self.blur_growth = float(blur_growth)
         self._squared = self._wall_distances = self._blurred = None
         if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
-            self._prepare_envelope(grid)
+            self._prepare_envelope()
         else:
+            grid = self.grid
             # the walls' distance transform, once for the blur and the verdict
             transform = wall_transform(grid) if blur_kind == "ramp" and blur_width > 0 else None
             self._wall_distances = transform[0] if transform is not None else None
             blurred = blur(grid, blur_width, kind=blur_kind, transform=transform)
             self._blurred = blurred if blurred is not grid else grid._with_trusted(grid.prob)
-        # the map as compared: blurred for the paper's |p_A - p_B| (``_kernels``); for "envelope" the
-        # map itself (a GridMap of its own over the same read-only array: a strong reference to the
-        # caller's map would keep it in the matcher's weak-keyed cache forever), on which the dense
-        # kernel only counts the overlap
-        self.lower = grid._with_trusted(grid.prob) if blur_kind == "envelope" else self.blurred
-        self.n_known = int(np.count_nonzero(grid.known))
+        self.n_known = int(np.count_nonzero(self.known))
         # padded, values, rows, radius, centroid and spread are made when first asked for: the
         # envelope's coarser levels seldom need the first three and never the last three
-
         self._coarser = None
-        self._coarser_grid = None
         self._wall_distance = None
         self._wall_arrays = {}
 
-    def _prepare_envelope(self, grid):
+    @property
+    def lower(self) -> GridMap:
+        """The map as compared: blurred for the paper's |p_A - p_B| (``_kernels``); for "envelope"
+        the map itself, on which the dense kernel only counts the overlap."""
+        return self.grid if self.blur_kind == "envelope" else self.blurred
+
+    @property
+    def grid(self) -> GridMap:
+        """The map this was prepared from, after the evidence conversion (made when first asked
+        for, for "trinary")."""
+        if self._code is None:
+            return self.frame
+        if self._converted is None:
+            self._converted = self.frame._with_trusted(trinary_values(self._code))
+        return self._converted
+
+    @property
+    def known(self) -> np.ndarray:
+        """The known cells' mask (for "trinary" made anew at each call: not kept)."""
+        return self._code != UNKNOWN if self._code is not None else self.frame.known
+
+    def _prepare_envelope(self):
         """The conflict grid and the walls; for the verdict the walls' distances. With few walls
         (laser-built maps: 0.1-2 % of the cells) each wall stamps the disc of the envelope's
         reach around it: at 1 (trinary maps) its squared distance (``near_squared_distance``),
         from which the conflict grid is the same bit for bit as from the exact transform; grey
         (coarse levels) its weighted envelope (``near_weighted_envelope``). Otherwise the exact
         transforms over every cell (``_blur``)."""
-        self.walls = rows, cols, weights = wall_points(grid)
-        unknown = np.isnan(grid.prob)
-        width = self.blur_width / grid.resolution
+        frame, code = self.frame, self._code
+        if code is None:
+            self.walls = rows, cols, weights = wall_points(frame)
+            ones = len(rows) > 0 and weights.min() == 1.0
+        else:
+            rows, cols = cells(code == OCCUPIED)
+            self.walls = rows, cols, weights = rows, cols, np.ones(len(rows))
+            ones = len(rows) > 0
+        unknown = ~self.known
+        width = self.blur_width / frame.resolution
         # out to the envelope's reach, and beyond the verdict's conflict distance (``_verdict``)
         reach = self._reach = max(envelope_reach(width), int(np.ceil(CONFLICT_CELLS)) + 1) if width > 0 else 0
-        few = width > 0 and 0 < len(rows) * (2 * reach + 1) ** 2 <= STAMP_WORK * grid.prob.size
-        ones = len(rows) > 0 and weights.min() == 1.0
-        ratio = grid.resolution / self.blur_width if width > 0 else 0.0
+        few = width > 0 and 0 < len(rows) * (2 * reach + 1) ** 2 <= STAMP_WORK * unknown.size
+        ratio = frame.resolution / self.blur_width if width > 0 else 0.0
+        self._stamp = few
         if few and ones:
-            self._squared = near_squared_distance(rows, cols, grid.shape, reach)
-            self.conflict = near_conflict_grid(grid.prob, self._squared, reach, ratio, unknown)
+            self._squared = near_squared_distance(rows, cols, frame.shape, reach)
+            self.conflict = near_conflict_grid(None if code is not None else frame.prob, self._squared, reach, ratio,
+                                               unknown)
             return
-        if few:
-            hi = np.fmax(grid.prob, near_weighted_envelope(rows, cols, weights, grid.shape, reach,
-                                                           envelope_profile(reach, ratio)[:-1]))
-        else:
-            # walls all 1: the exact transform, also the verdict's; grey: the blur's own (``_blur``)
-            transform = wall_transform(grid) if width > 0 and ones else None
+        self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), unknown)
+
+    def _envelope(self, ones, keep_distances=False):
+        """The envelope hi on every cell, for maps not stamped with squared distances: NaN (counts
+        as 0) where no wall reaches; ``keep_distances``: the walls' exact distances kept for the
+        verdict when they are computed."""
+        grid = self.grid
+        reach, width = self._reach, self.blur_width / grid.resolution
+        if self._stamp:
+            rows, cols, weights = self.walls
+            profile = envelope_profile(reach, grid.resolution / self.blur_width)[:-1]
+            return np.fmax(grid.prob, near_weighted_envelope(rows, cols, weights, grid.shape, reach, profile))
+        # walls all 1: the exact transform, also the verdict's; grey: the blur's own (``_blur``)
+        transform = wall_transform(grid) if width > 0 and ones else None
+        if keep_distances:
             self._wall_distances = transform[0] if transform is not None else None
-            hi = blur_everywhere(grid, self.blur_width, kind="envelope", transform=transform)
-        self.conflict = conflict_grid(hi, unknown)
-        if hi is not grid.prob:
-            hi[unknown] = np.nan
-        self._blurred = grid._with_trusted(hi)
+        return blur_everywhere(grid, self.blur_width, kind="envelope", transform=transform)
 
     @property
     def blurred(self) -> GridMap:
         """The blurred map; for "envelope" the envelope hi (0 beyond its reach where its walls'
-        distances were computed only within it, where it is below 2**-25 (``envelope_reach``))."""
+        distances were computed only within it, where it is below 2**-25 (``envelope_reach``)),
+        made when first asked for (it only shows what the conflict grid holds)."""
         if self._blurred is None:
             grid = self.lower
-            reach = self._reach
-            envelope = envelope_profile(reach, self.resolution / self.blur_width)[np.minimum(self._squared, reach**2 + 1)]
-            hi = np.fmax(grid.prob, envelope)
+            if self._squared is not None:
+                reach = self._reach
+                envelope = envelope_profile(reach, self.resolution / self.blur_width)[np.minimum(self._squared, reach**2 + 1)]
+                hi = np.fmax(grid.prob, envelope)
+            else:
+                weights = self.walls[2]
+                hi = self._envelope(len(weights) > 0 and weights.min() == 1.0)
+                if hi is grid.prob:
+                    return grid
             hi[np.isnan(grid.prob)] = np.nan
             self._blurred = grid._with_trusted(hi)
         return self._blurred
@@ -145,7 +185,7 @@ class PreparedMap:
     @functools.cached_property
     def rows(self) -> np.ndarray:
         """Role B: (R, 3) int32 rows holding known cells, with their first and last known column + 1."""
-        known = self.lower.known
+        known = self.known
         rows = np.flatnonzero(known.any(axis=1))
         first = known[rows].argmax(axis=1)
         last = known.shape[1] - known[rows][:, ::-1].argmax(axis=1)
@@ -156,8 +196,8 @@ class PreparedMap:
         """(radius, centroid, spread) of the known cells' centres, from the known cells per row and
         per column (their centres are affine in (row, col), so the moments need only those
         counts: a tenth of the time of listing every known cell)."""
-        known = self.lower.known
-        n = int(np.count_nonzero(known))
+        known = self.known
+        n = self.n_known
         if n == 0:
             return self.resolution, np.zeros(2), self.resolution
         res = self.resolution
@@ -167,7 +207,7 @@ class PreparedMap:
             mean = float(np.dot(counts, local)) / n
             moments.append((mean, float(np.dot(counts, (local - mean) ** 2)) / n))
         (mx, vx), (my, vy) = moments
-        x0, y0, yaw = self.lower.corner_pose
+        x0, y0, yaw = self.frame.corner_pose
         c, s = np.cos(yaw), np.sin(yaw)
         # the known cells' centroid in the map frame, and their rms distance from it
         centroid = np.array([x0 + c * mx - s * my, y0 + s * mx + c * my])
@@ -193,20 +233,15 @@ class PreparedMap:
         return self._moments[2]
 
     @property
-    def grid(self) -> GridMap:
-        """The map this was prepared from (alive for as long as its owner keeps it), after the
-        evidence conversion."""
-        grid = self._grid()
-        if grid is None:
-            raise ReferenceError("the map this PreparedMap was made from no longer exists")
-        return grid if self._converted is None else self._converted
-
-    @property
     def wall_distance(self):
         """The map's walls and their distance transform, for the verdict (computed once)."""
         if self._wall_distance is None:
             walls = self.walls[:2] if self.blur_kind == "envelope" else None     # wall_points' are p >= 0.5
-            self._wall_distance = WallDistance(self.grid, self._wall_distances, walls, squared=self._squared)
+            if self._squared is not None:
+                known = self._code if self._code is not None else self.frame.known           # nonzero: known
+                self._wall_distance = WallDistance(self.frame, walls=walls, squared=self._squared, known=known)
+            else:
+                self._wall_distance = WallDistance(self.grid, self._wall_distances, walls)
             self._wall_distances = None                                           # taken over
         return self._wall_distance
 
@@ -224,10 +259,12 @@ class PreparedMap:
         while a lone occupied cell fades (``_pyramid.coarsen``, reduce "line")."""
         if self._coarser is None:
             reduce = "line" if self.blur_kind == "envelope" else "mean"
-            binary = self._converted is not None          # ``trinary``'s cells are 0, 1 or unknown
-            self._coarser_grid = coarsen(self.grid, reduce=reduce, binary=binary)   # owned here: the level holds it weakly
-            self._coarser = PreparedMap(self._coarser_grid, self.blur_width * self.blur_growth, self.blur_kind,
-                                        self.blur_growth)
+            if self._code is not None:
+                frame = self.frame
+                coarse = _trusted(halve_code(self._code, reduce), frame.resolution * 2, frame.corner_pose)
+            else:
+                coarse = coarsen(self.grid, reduce=reduce)
+            self._coarser = PreparedMap(coarse, self.blur_width * self.blur_growth, self.blur_kind, self.blur_growth)
         return self._coarser
 
     def level(self, k):
@@ -238,7 +275,7 @@ class PreparedMap:
         return prepared
 
     def __repr__(self):
-        return f"PreparedMap({self._grid()!r}, blur {self.blur_kind} {self.blur_width} m)"
+        return f"PreparedMap({self.frame!r}, blur {self.blur_kind} {self.blur_width} m)"
 
 
 def make_engine(name, a: PreparedMap, b: PreparedMap, unknown_cost: float = 0.0):
@@ -279,10 +316,10 @@ class EnvelopeDiscrepancy:
         """The dense engine that counts the overlap, made when first needed (a middle pyramid
         level never counts)."""
         if self._dense_engine is None:
-            # A's conflict grid is laid out as ``padded`` and known exactly where >= 0, all the
-            # count reads: no copy of A as values
+            # the conflict grids are laid out as ``padded`` and known exactly where >= 0, all the
+            # count reads: no copy of either map as values
             a, b = self._maps
-            self._dense_engine = Engine(self.name, a, b, a_lookup=a.conflict)
+            self._dense_engine = Engine(self.name, a, b, a_lookup=a.conflict, b_lookup=b.conflict)
         return self._dense_engine
 
     def __call__(self, poses, count="all"):
@@ -335,18 +372,24 @@ class Engine:
 
     counts_free = True           # the kernel counts the overlap as it sums
 
-    def __init__(self, name, a: PreparedMap, b: PreparedMap, a_lookup: np.ndarray = None):
-        """``a_lookup``: a float32 grid laid out as ``a.padded`` to read instead, when only the
-        overlap is wanted (its known cells exactly its cells >= 0)."""
+    def __init__(self, name, a: PreparedMap, b: PreparedMap, a_lookup: np.ndarray = None,
+                 b_lookup: np.ndarray = None):
+        """``a_lookup``, ``b_lookup``: float32 grids laid out as ``a.padded`` to read instead of A's
+        and B's maps, when only the overlap is wanted (their known cells exactly their cells >= 0;
+        B's is read at its cells PAD rows and columns in)."""
         self.name = name
         self._resolution_a = a.resolution
         # the stencil kernel needs A's grid axes along its frame's axes (whole-cell shifts)
-        self._stencil_kernel = a.lower.corner_pose[2] == 0.0 and b.n_known >= STENCIL_KERNEL_MIN_CELLS
-        self._a_grid, self._b_grid = a.lower, b.lower
+        self._stencil_kernel = (a.frame.corner_pose[2] == 0.0 and b.n_known >= STENCIL_KERNEL_MIN_CELLS
+                                and b_lookup is None)
+        self._maps = (a, b)
         self._bilinear_oracle = None
         if name == "taichi":
-            self._kernel = TaichiEngine(a.padded if a_lookup is None else a_lookup, b.values, b.rows)
-            self._affine = AffineMap(a.lower, b.lower)
+            if b_lookup is None:
+                self._kernel = TaichiEngine(a.padded if a_lookup is None else a_lookup, b.values, b.rows)
+            else:
+                self._kernel = TaichiEngine(a_lookup, b_lookup, b.rows + np.int32(PAD))
+            self._affine = AffineMap(a.frame, b.frame, b_pad=0 if b_lookup is None else PAD)
             self._rows_i = b.rows[:, 0].astype(np.float64)
         else:
             self._oracle = NumpyDiscrepancy(a.lower, b.lower)
@@ -376,7 +419,7 @@ class Engine:
         poses = np.asarray(poses, dtype=np.float64)
         if self.name != "taichi":
             if self._bilinear_oracle is None:
-                self._bilinear_oracle = NumpyBilinear(self._a_grid, self._b_grid)
+                self._bilinear_oracle = NumpyBilinear(self._maps[0].lower, self._maps[1].lower)
             return self._bilinear_oracle(poses)
         e, counts, sums = self._kernel.bilinear(self._affine(poses))
         # u = c0 j + c1 i + c2, v = c3 j + c4 i + c5: d/dq sum = dc0 S(g_u j) + dc1 S(g_u i) + ...

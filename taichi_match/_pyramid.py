@@ -5,9 +5,9 @@ from typing import Literal
 import numpy as np
 
 from ._errors import InvalidOptionError
-from ._grid import GridMap, _trusted
+from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted
 
-__all__ = ["coarsen"]
+__all__ = ["coarsen", "halve_code"]
 
 
 def coarsen(grid: GridMap, factor: int = 2, reduce: Literal["mean", "max", "line"] = "mean", *,
@@ -68,13 +68,21 @@ def _halve(prob, reduce):
 
 def _halve_binary(prob, reduce):
     """``_halve`` of a grid whose known cells are 0 or 1 (any shape, a last odd row or column
-    reduced over the cells it has): each block's occupied and known cells counted in bytes, and
-    its value read from ``_BINARY_BLOCKS``, which holds ``_halve``'s float64 arithmetic on every
-    pair of counts (the same numbers, in a third of the time)."""
-    ones = (prob == 1.0).view(np.uint8)
-    seen = (prob == prob).view(np.uint8)                 # False on NaN
-    if prob.shape[0] % 2 or prob.shape[1] % 2:           # a ring of unknown cells, in bytes
-        ones, seen = (np.pad(x, ((0, prob.shape[0] % 2), (0, prob.shape[1] % 2))) for x in (ones, seen))
+    reduced over the cells it has)."""
+    return _halve_counts((prob == 1.0).view(np.uint8), (prob == prob).view(np.uint8), reduce)   # NaN != NaN
+
+
+def halve_code(code: np.ndarray, reduce: Literal["mean", "line"] = "line") -> np.ndarray:
+    """``coarsen``'s float64 probabilities, factor 2, of a map given as ``_grid.trinary_code``."""
+    return _halve_counts((code == OCCUPIED).view(np.uint8), (code != UNKNOWN).view(np.uint8), reduce)
+
+
+def _halve_counts(ones, seen, reduce):
+    """``_halve`` from a binary map's occupied and known cells (uint8 0/1 grids): each block's
+    counts added in bytes, its value read from ``_BINARY_BLOCKS``, which holds ``_halve``'s float64
+    arithmetic on every pair of counts (the same numbers, in a third of the time)."""
+    if ones.shape[0] % 2 or ones.shape[1] % 2:           # a ring of unknown cells, in bytes
+        ones, seen = (np.pad(x, ((0, ones.shape[0] % 2), (0, ones.shape[1] % 2))) for x in (ones, seen))
     code = (ones[0::2, 0::2] + ones[0::2, 1::2]) + (ones[1::2, 0::2] + ones[1::2, 1::2])
     code *= 5                                            # occupied * 5 + known: 0 .. 24
     for block in (seen[0::2, 0::2], seen[0::2, 1::2], seen[1::2, 0::2], seen[1::2, 1::2]):

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._covariance import centroid_metric
-from ._distance import FAR, wall_distance
+from ._distance import far, wall_distance
 from ._grid import cells
 from ._se2 import inverse, transform_points
 
@@ -65,22 +65,25 @@ class WallDistance:
     """A map's walls (p >= 0.5) and, per cell, the distance in cells to the nearest one (NaN on
     unknown cells)."""
 
-    def __init__(self, grid, distance=None, walls=None, squared=None):
+    def __init__(self, grid, distance=None, walls=None, squared=None, known=None):
         """``distance``: the distance transform of the walls (``_blur.wall_transform``'s first
         array, float64) when the caller has it, which this takes over (its unknown cells become
-        NaN); or ``squared``: the squared distances within some reach and ``_distance.FAR``
+        NaN); or ``squared``: the squared distances within some reach and ``_distance.far``
         beyond (``near_squared_distance``: beyond a reach of more than ``CONFLICT_CELLS`` the
-        verdict's counts are the same); ``walls``: (rows, cols) of the cells with p >= 0.5 when the
-        caller has them."""
-        p = grid.prob
+        verdict's counts are the same), with ``known``, nonzero on the known cells (a mask, or
+        ``_grid.trinary_code``); ``walls``: (rows,
+        cols) of the cells with p >= 0.5 when the caller has them. With ``squared``, ``grid``
+        serves only for its geometry."""
         self.grid = grid
-        rows, cols = cells(p >= 0.5) if walls is None else walls             # False on unknown (NaN) cells
+        rows, cols = cells(grid.prob >= 0.5) if walls is None else walls     # False on unknown (NaN) cells
         self.centres = grid.cell_centres(rows, cols)
-        self._squared = squared
+        self._squared, self._known = squared, known
         if squared is None:
             if distance is None:
-                distance = wall_distance(p >= 0.5)                           # +inf without walls
-            distance[np.isnan(p)] = np.nan
+                distance = wall_distance(grid.prob >= 0.5)                   # +inf without walls
+            distance[np.isnan(grid.prob)] = np.nan
+        elif known is None:
+            raise ValueError("squared distances need the known cells' mask")
         self.distance = distance
 
     def lookup(self, rows, cols):
@@ -95,8 +98,8 @@ class WallDistance:
             out[inside] = self.distance[r, c]
         else:
             squared = self._squared[r, c]
-            d = np.where(squared == FAR, np.inf, np.sqrt(squared.astype(np.float64)))
-            d[np.isnan(self.grid.prob[r, c])] = np.nan
+            d = np.where(squared == far(self._squared), np.inf, np.sqrt(squared.astype(np.float64)))
+            d[self._known[r, c] == 0] = np.nan
             out[inside] = d
         return out
 

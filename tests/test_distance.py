@@ -39,16 +39,19 @@ def test_generalised_transform_equals_brute_force(rng):
         np.testing.assert_allclose(squared_distance(f), brute, rtol=1e-12, atol=1e-9)
 
 
-@pytest.mark.parametrize("reach", [0, 1, 4, 13])
+@pytest.mark.parametrize("reach", [0, 1, 4, 13, 20])
 def test_near_squared_distance_is_exact_within_reach(reach, rng):
-    from taichi_match._distance import FAR, near_squared_distance
+    from taichi_match._distance import far, near_squared_distance
 
     for shape, share in [((1, 1), 1.0), ((1, 40), 0.1), ((37, 1), 0.1), ((60, 75), 0.01), ((90, 50), 0.2)]:
         walls = rng.random(shape) < share
         got = near_squared_distance(*np.nonzero(walls), shape, reach)
         exact = np.rint(ndimage.distance_transform_edt(~walls) ** 2) if walls.any() else np.full(shape, np.inf)
-        assert got.dtype == np.int32
-        np.testing.assert_array_equal(got, np.where(exact <= reach * reach, exact, FAR).astype(np.int32))
+        assert np.iinfo(got.dtype).max > reach * reach
+        np.testing.assert_array_equal(got, np.where(exact <= reach * reach, exact, far(got)))
+        rows, cols = np.nonzero(walls)
+        shuffled = rng.permutation(len(rows))                # the walls in any order
+        np.testing.assert_array_equal(near_squared_distance(rows[shuffled], cols[shuffled], shape, reach), got)
 
 
 def test_near_weighted_envelope_is_the_largest_weighted_profile_within_reach(rng):
