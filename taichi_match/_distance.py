@@ -167,7 +167,7 @@ def _built():
     return _KERNELS["kernels"]
 
 
-def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype):
+def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
     """The stamp kernel's output of ``shape`` for walls at (``rows``, ``cols``) (in any order);
     unweighted, ``far(out)`` beyond the reach."""
     rows = np.ascontiguousarray(rows, dtype=np.int32)
@@ -192,7 +192,7 @@ def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype):
     weights = np.zeros(1) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
     if order is not None and len(weights) > 1:
         weights = weights[order]
-    out = np.empty(shape, dtype=dtype)
+    out = np.empty(shape, dtype=dtype) if out is None else out
     with kernel_lock():
         _launch(_built()[kernel], (rows, cols, weights, np.ascontiguousarray(profile, dtype=np.float64),
                                               first, half, beyond, out), _TAICHI_TYPES[np.dtype(dtype).name])
@@ -213,12 +213,15 @@ def near_squared_distance(rows, cols, shape, reach: int) -> np.ndarray:
     return _stamp(1, rows, cols, None, np.zeros(1), shape, reach, dtype)
 
 
-def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.ndarray) -> np.ndarray:
+def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.ndarray, *,
+                           scratch: bool = False) -> np.ndarray:
     """max over the walls at (``rows``, ``cols``) within ``reach`` cells of ``weights[k] *
     profile[squared distance]`` per cell of a grid of ``shape`` (0 where none is within reach):
     the upper envelope of grey walls, each wall stamping its disc (float64; ``profile`` has
-    reach**2 + 1 entries)."""
-    return _stamp(2, rows, cols, np.asarray(weights, dtype=np.float64), profile, shape, reach, np.float64)
+    reach**2 + 1 entries). ``scratch``: in a buffer kept for the next call (valid until then)."""
+    shape = tuple(int(n) for n in shape)
+    out = _SCRATCH.get("envelope", shape, np.float64) if scratch else None
+    return _stamp(2, rows, cols, np.asarray(weights, dtype=np.float64), profile, shape, reach, np.float64, out)
 
 
 def wall_distance(walls: np.ndarray) -> np.ndarray:

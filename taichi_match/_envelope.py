@@ -44,6 +44,7 @@ measured 3.5x faster than (M, 4) rows, whose loads do not vectorise).
 import numpy as np
 
 from ._cost import AffineMap, pose_feature_pair
+from ._distance import near_weighted_envelope
 from ._grid import GridMap, cells
 from ._kernels import _STATE, PAD, Launcher, _launch, ensure_initialized, kernel_lock
 from ._se2 import as_poses, inverse, transform_points
@@ -90,32 +91,41 @@ def envelope_profile(reach: int, ratio: float) -> np.ndarray:
     return np.append(profile, 0.0)
 
 
-def near_conflict_grid(prob, squared: np.ndarray, reach: int, ratio: float, unknown: np.ndarray) -> np.ndarray:
-    """``conflict_grid`` of a map whose walls are all 1, from the squared distances to them that
-    ``_distance.near_squared_distance`` gives within ``reach`` (``envelope_reach``): hi =
-    max(p, ``envelope_profile``) within reach, p beyond, where the envelope is below 2**-25 and
-    changes nothing in float32. The same grid bit for bit as from the exact transform and the
-    blur, in one Taichi launch. ``prob`` None: every known cell is 0 or 1 (a trinary map), so hi
-    is the envelope alone (1 on the walls)."""
-    h, w = squared.shape
+def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, *, squared: np.ndarray = None,
+                       walls=None) -> np.ndarray:
+    """``conflict_grid`` from the walls' envelope stamped within its reach, in one Taichi launch:
+    hi = max(p, envelope) on known cells, the envelope on unknown ones.
+
+    ``squared``: the squared distances to walls all 1 that ``_distance.near_squared_distance``
+    gives within ``reach`` (``envelope_reach``), read through ``envelope_profile(reach, ratio)``
+    (beyond the reach the envelope is below 2**-25 and changes nothing in float32): the same grid
+    bit for bit as from the exact transform and the blur. ``walls``: (rows, cols, weights) of
+    grey walls, whose envelope (``_distance.near_weighted_envelope``, 0 beyond the reach) goes
+    into a scratch buffer: ``conflict_grid`` of max(p, envelope), bit for bit, without that
+    grid. ``prob`` None: every known cell is 0 or 1 (a trinary map) and hi is the envelope alone
+    (1 on the walls)."""
+    h, w = unknown.shape
     out = np.empty((h + 2 * PAD, w + 2 * PAD), dtype=np.float32)
-    with kernel_lock():
+    profile = envelope_profile(reach, ratio)
+    with kernel_lock():                     # held while the scratch buffer is in use
         ensure_initialized()
         if "conflict" not in _KERNEL:
             _KERNEL["conflict"] = _build_conflict(_STATE["ti"])
+        if walls is not None:
+            squared = near_weighted_envelope(*walls, (h, w), reach, profile[:-1], scratch=True)
         p = np.zeros((0, 0)) if prob is None else np.ascontiguousarray(prob, dtype=np.float64)
         _launch(_KERNEL["conflict"], (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8),
-                                      envelope_profile(reach, ratio), out), prob is not None)
+                                      profile, out), (prob is not None, walls is None))
     return out
 
 
 def _build_conflict(ti):
     @ti.kernel
-    def conflict(prob: ti.types.ndarray(dtype=ti.f64, ndim=2), squared: ti.types.ndarray(ndim=2),
+    def conflict(prob: ti.types.ndarray(dtype=ti.f64, ndim=2), source: ti.types.ndarray(ndim=2),
                  unknown: ti.types.ndarray(dtype=ti.u8, ndim=2), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                 out: ti.types.ndarray(dtype=ti.f32, ndim=2), grey: ti.template()):
+                 out: ti.types.ndarray(dtype=ti.f32, ndim=2), grey: ti.template(), from_squared: ti.template()):
         far = profile.shape[0] - 1
-        h, w = squared.shape[0], squared.shape[1]
+        h, w = source.shape[0], source.shape[1]
         for i in range(out.shape[0]):                       # a row per work item, its cells in order
             if i < PAD or i >= h + PAD:
                 for j in range(out.shape[1]):
@@ -125,7 +135,11 @@ def _build_conflict(ti):
                     out[i, j] = ti.f32(_OFF_MAP)
                     out[i, w + PAD + j] = ti.f32(_OFF_MAP)
                 for j in range(w):
-                    hi = profile[ti.min(ti.cast(squared[i - PAD, j], ti.i64), far)]
+                    hi = ti.f64(0.0)
+                    if ti.static(from_squared):
+                        hi = profile[ti.min(ti.cast(source[i - PAD, j], ti.i64), far)]
+                    else:
+                        hi = ti.cast(source[i - PAD, j], ti.f64)
                     known = unknown[i - PAD, j] == 0         # (fast math takes p == p for true on NaN)
                     if ti.static(grey):
                         hi = ti.select(known, ti.max(prob[i - PAD, j], hi), hi)

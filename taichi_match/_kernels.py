@@ -419,8 +419,8 @@ def _context(t_kernel, arrays):
 
 
 def _templates(mode):
-    """The template arguments after the arrays: the count mode, or none (``mode`` None)."""
-    return () if mode is None else (mode,)
+    """The template arguments after the arrays: ``mode`` (a tuple: several), or none (None)."""
+    return () if mode is None else mode if isinstance(mode, tuple) else (mode,)
 
 
 def _compiled(kernel, arrays, mode):

@@ -35,9 +35,10 @@ STENCIL_KERNEL_MIN_CELLS = 50_000
 # count="any": this many of B's walls landing on known cells of A stand for the overlap count
 OVERLAP_PROOF_WALLS = 10
 # The envelope's walls' distances are stamped around each wall (``near_squared_distance``) while
-# walls x (2 reach + 1)^2 is at most this many times the map's cells: on laser submaps (0.1-2 % of
-# the cells walls, a reach of 13 cells) 6x faster than the exact transform over every cell
-STAMP_WORK = 6
+# walls x (2 reach + 1)^2 is at most this many times the map's cells: measured against the exact
+# transforms over every cell on laser submaps and the shared robot maps, every pyramid level, two
+# blurs: the stamps 2-3x faster up to 10, even at 25-30, 2-3x slower beyond 55
+STAMP_WORK = 25
 
 
 class PreparedMap:
@@ -125,10 +126,12 @@ class PreparedMap:
         self._stamp = few
         if few and ones:
             self._squared = near_squared_distance(rows, cols, frame.shape, reach)
-            self.conflict = near_conflict_grid(None if code is not None else frame.prob, self._squared, reach, ratio,
-                                               unknown)
-            return
-        self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), unknown)
+            self.conflict = near_conflict_grid(None if code is not None else frame.prob, unknown, reach, ratio,
+                                               squared=self._squared)
+        elif few:
+            self.conflict = near_conflict_grid(frame.prob, unknown, reach, ratio, walls=self.walls)
+        else:
+            self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), unknown)
 
     def _envelope(self, ones, keep_distances=False):
         """The envelope hi on every cell, for maps not stamped with squared distances: NaN (counts
