@@ -14,7 +14,8 @@ from taichi_match import (GridMap, InvalidOptionError, Matcher, MatchOptions, Pr
                           transform_points)
 from taichi_match._envelope import SERIAL_BELOW, EnvelopeEngine, NumpyEnvelope
 from taichi_match._grid import trinary
-from taichi_match._pyramid import coarsen
+from taichi_match._pyramid import coarsen, halve_code
+from taichi_match._grid import trinary_code
 
 TRUTH = (0.15, -0.1, 0.05)
 
@@ -320,16 +321,25 @@ def test_coarsening_equals_a_plain_numpy_block_reduction(shape, reduce, factor, 
     np.testing.assert_allclose(out.prob, expected, rtol=1e-14, atol=0.0)
 
 
-@pytest.mark.parametrize("shape", [(40, 60), (41, 60), (40, 61), (7, 3), (1, 1)])
+@pytest.mark.parametrize("shape", [(40, 60), (41, 60), (40, 61), (7, 3), (1, 1), (1, 2), (2, 1)])
 @pytest.mark.parametrize("reduce", ["mean", "line"])
-def test_binary_coarsening_is_the_general_one_bit_for_bit(shape, reduce, rng):
-    """``binary=True`` (counts and a table) gives the general reduction's numbers exactly, odd shapes too."""
+def test_halving_trinary_codes_is_coarsening_their_map_bit_for_bit(shape, reduce, rng):
+    """``halve_code`` (counts and a table) gives the general reduction's numbers exactly, odd shapes too,
+    and both give the plain NumPy block reduction's (sums as NumPy adds them over the block axes)."""
     prob = (rng.random(shape) < 0.3).astype(np.float64)
     prob[rng.random(shape) < 0.4] = np.nan
     grid = GridMap(prob, 0.05, (1.0, -2.0, 0.3))
-    fast, plain = coarsen(grid, reduce=reduce, binary=True), coarsen(grid, reduce=reduce)
-    assert fast.corner_pose == plain.corner_pose and fast.resolution == plain.resolution
-    np.testing.assert_array_equal(fast.prob, plain.prob)
+    general = coarsen(grid, reduce=reduce)
+    np.testing.assert_array_equal(halve_code(trinary_code(prob), reduce), general.prob)
+    grey = GridMap(np.where(np.isnan(prob), np.nan, rng.random(shape)), 0.05)
+    padded = np.full((-(-shape[0] // 2) * 2, -(-shape[1] // 2) * 2), np.nan)
+    padded[:shape[0], :shape[1]] = grey.prob
+    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2)
+    known = (~np.isnan(blocks)).sum(axis=(1, 3))
+    total = np.where(np.isnan(blocks), 0.0, blocks).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        expected = total / known if reduce == "mean" else np.minimum(2 * total / known, 1.0)
+    np.testing.assert_array_equal(coarsen(grey, reduce=reduce).prob, np.where(known > 0, expected, np.nan))
 
 
 def test_line_reduction_fades_a_lone_cell_and_mean_and_max_do_as_documented():

@@ -93,19 +93,6 @@ def test_maps_too_large_are_refused_before_allocating():
         GridMap(huge, 0.05)
 
 
-def test_coarsening_a_binary_map_by_counts_equals_the_float_reduction():
-    from taichi_match._pyramid import coarsen
-
-    rng = np.random.default_rng(4)
-    for shape in ((9, 14), (1, 1), (30, 31)):
-        prob = (rng.random(shape) < 0.3).astype(np.float64)
-        prob[rng.random(shape) < 0.25] = np.nan
-        grid = GridMap(prob, 0.05, (1.0, -2.0))
-        for reduce in ("line", "mean"):
-            fast, plain = coarsen(grid, reduce=reduce, binary=True), coarsen(grid, reduce=reduce)
-            assert fast.prob.tobytes() == plain.prob.tobytes() and fast.corner_pose == plain.corner_pose
-
-
 @pytest.mark.parametrize("shape", [(1, 1), (3, 7), (0, 5), (5, 0), (100, 37)])
 def test_cells_lists_a_masks_true_cells_as_numpy_nonzero(shape):
     mask = np.random.default_rng(sum(shape)).random(shape) < 0.3
