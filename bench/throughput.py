@@ -6,8 +6,8 @@
 For each log of ``../shared/logs``: submaps of 40 scans at 0.05 m cast at the reference poses,
 one every 20 scans (issue 14's measure: about 1000 x 1000 cells), then
 
-- **preparation**: a new map prepared as a match needs it (``Matcher.prepare``, its pyramid's
-  levels and the verdict's wall distances): median ms per submap;
+- **preparation**: a new map prepared as a match needs it (``Matcher.prepare``: its pyramid's
+  levels, the verdict's wall distances, its known rows): median ms per submap;
 - **prepared match**: consecutive submaps, both prepared before, matched from the reference's
   relative pose moved by (0.1 m, -0.1 m, 0.05 rad): median ms;
 - **new pairs per second**: the same pairs with neither prepared (a new matcher per pair: both
@@ -41,11 +41,9 @@ OFFSET = np.array([0.1, -0.1, 0.05])
 
 
 def prepare_fully(matcher, grid):
-    """The preparation a match of ``grid`` uses: every pyramid level and the verdict's distances."""
-    prepared = matcher.prepare(grid)
-    prepared.level(matcher.options.levels - 1)
-    prepared.wall_distance
-    return prepared
+    """The preparation a match of ``grid`` uses (``Matcher.prepare``: every pyramid level, the
+    verdict's distances, the known rows and their moments)."""
+    return matcher.prepare(grid)
 
 
 def peak_rss_mb():

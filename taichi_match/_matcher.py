@@ -8,6 +8,7 @@ polish -> Hessian (eq. 12) -> covariance (eq. 11).
 import dataclasses
 import functools
 import math
+import numbers
 import threading
 import time
 import weakref
@@ -339,8 +340,12 @@ class Matcher:
         self._lock = threading.Lock()
 
     def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None,
-                blur_growth: Optional[float] = None, evidence: Optional[str] = None) -> PreparedMap:
-        """Blur ``grid`` once (cached per blur for as long as the map lives)."""
+                blur_growth: Optional[float] = None, evidence: Optional[str] = None,
+                levels: Optional[int] = None) -> PreparedMap:
+        """Prepare ``grid`` for matching once (cached for as long as the map lives): blurred, and
+        everything a match through ``levels`` pyramid levels reads (the matcher's options fill in
+        what is not given). A mapping loop calls this when a submap is finished, so that its
+        matches cost only the matching."""
         check_not_forked()              # before the cache's lock, which a parent's thread may have held
         if not isinstance(grid, GridMap):
             raise InvalidMapError(f"expected a GridMap; got {type(grid).__name__}")
@@ -355,6 +360,10 @@ class Matcher:
             prepared = PreparedMap(grid, *key)
             with self._lock:
                 prepared = per_map.setdefault(key, prepared)
+        levels = self.options.levels if levels is None else levels
+        if isinstance(levels, bool) or not isinstance(levels, numbers.Integral) or levels < 1:
+            raise InvalidOptionError(f"levels must be a whole number >= 1; got {levels!r}")
+        prepared.ready(int(levels))
         return prepared
 
     def match(self, a: GridMap, b: GridMap, initial_pose=None, *, search_window=None, **overrides) -> MatchResult:
@@ -385,8 +394,8 @@ class Matcher:
             initial_pose = hypotheses[0].pose if hypotheses else guess
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
-        prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence)
-        prep_b = self.prepare(b, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence)
+        prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence, opts.levels)
+        prep_b = self.prepare(b, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence, opts.levels)
         counter = _Counter()
         full_weight = opts.weight(prep_b.n_known)
         if opts.method == "bfgs":

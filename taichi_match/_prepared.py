@@ -80,6 +80,7 @@ class PreparedMap:
         self._coarser = None
         self._wall_distance = None
         self._wall_arrays = {}
+        self._ready = 0
 
     @property
     def lower(self) -> GridMap:
@@ -269,6 +270,18 @@ class PreparedMap:
                 coarse = coarsen(self.grid, reduce=reduce)
             self._coarser = PreparedMap(coarse, self.blur_width * self.blur_growth, self.blur_kind, self.blur_growth)
         return self._coarser
+
+    def ready(self, levels: int):
+        """Make now what a match through ``levels`` pyramid levels reads of this map in either
+        role: the levels, the verdict's wall distances, the rows of known cells and their moments
+        (each once)."""
+        if levels > self._ready:
+            self.wall_distance
+            self._moments
+            for k in range(levels):
+                level = self.level(k)
+                level.rows
+            self._ready = levels
 
     def level(self, k):
         """Level ``k`` of the pyramid (0: this map)."""
