@@ -19,9 +19,10 @@ from ._matcher import CALIBRATED_COVARIANCE_SCALE, Matcher, MatchOptions, MatchR
 from ._prepared import PreparedMap, make_engine
 from ._search import Hypothesis
 from ._se2 import as_poses, compose, inverse, transform_points, wrap_angle
+from .many import iter_matches, match_many
 
 __all__ = [
-    "GridMap", "discrepancy", "match", "Matcher", "MatchOptions", "MatchResult", "Hypothesis", "Status",
+    "GridMap", "discrepancy", "match", "match_many", "iter_matches", "Matcher", "MatchOptions", "MatchResult", "Hypothesis", "Status",
     "CALIBRATED_COVARIANCE_SCALE",
     "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
     "MapFileError", "MapFormatError", "LogFileError", "LogFormatError",

@@ -38,10 +38,10 @@ class GridMap:
         (x0, y0) of the outer corner of cell (0, 0), metres, in the map's own frame.
     """
 
-    __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "_known", "__weakref__")
+    __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "_known", "_code", "__weakref__")
 
     def __init__(self, prob, resolution, origin=(0.0, 0.0)):
-        self._known = None
+        self._known = self._code = None
         self._prob = _check_prob(prob)
         self._resolution = _check_resolution(resolution)
         *xy, self._yaw = _check_origin(origin)
@@ -50,6 +50,10 @@ class GridMap:
     @property
     def prob(self):
         """Read-only float64 array (rows, cols); NaN = unknown."""
+        if self._prob is None:                  # a map made from its trinary code (``_from_code``)
+            prob = trinary_values(self._code)
+            prob.setflags(write=False)
+            self._prob = prob
         return self._prob
 
     @property
@@ -73,13 +77,13 @@ class GridMap:
 
     @property
     def shape(self):
-        return self._prob.shape
+        return self._prob.shape if self._prob is not None else self._code.shape
 
     @property
     def known(self):
         """Read-only boolean mask of known (non-NaN) cells (made once: the map never changes)."""
         if self._known is None:
-            known = ~np.isnan(self._prob)
+            known = ~np.isnan(self._prob) if self._prob is not None else self._code != UNKNOWN
             known.setflags(write=False)
             self._known = known
         return self._known
@@ -144,10 +148,33 @@ def _trusted(prob, resolution, corner_pose) -> GridMap:
     grid = GridMap.__new__(GridMap)
     prob.setflags(write=False)
     grid._prob = prob
-    grid._known = None
+    grid._known = grid._code = None
     grid._resolution = float(resolution)
     grid._origin, grid._yaw = (float(corner_pose[0]), float(corner_pose[1])), float(corner_pose[2])
     return grid
+
+
+def _from_code(code: np.ndarray, resolution, corner_pose) -> GridMap:
+    """A trinary map given by its ``trinary_code`` (uint8, read-only from here on), its float64
+    probabilities made only when first read: a byte a cell to keep or send where the map has
+    eight, and what ``trinary_code`` returns for it without a pass over them."""
+    grid = _trusted(np.empty((0, 0)), resolution, corner_pose)
+    code.setflags(write=False)
+    grid._prob, grid._code = None, code
+    return grid
+
+
+def twin(grid: GridMap) -> GridMap:
+    """A GridMap of its own over ``grid``'s read-only data (no copy; a map made by ``_from_code``
+    stays one)."""
+    if grid._code is not None:
+        return _from_code(grid._code, grid.resolution, grid.corner_pose)
+    return grid._with_trusted(grid.prob)
+
+
+def grid_code(grid: GridMap) -> np.ndarray:
+    """``trinary_code(grid.prob)``, without a pass for a map made by ``_from_code``."""
+    return grid._code if grid._code is not None else trinary_code(grid.prob)
 
 
 def _check_prob(prob):

@@ -42,14 +42,22 @@ import numpy as np
 
 from ._errors import EngineError
 
-__all__ = ["TaichiEngine", "Launcher", "ensure_initialized", "kernel_lock", "check_not_forked", "Kernels", "PAD"]
+__all__ = ["TaichiEngine", "Launcher", "ensure_initialized", "kernel_lock", "check_not_forked", "set_threads", "Kernels",
+           "PAD"]
 
 # Width of the ring of unknown cells around A: lookups are clamped two cells inside the padded
 # grid and then shifted by up to two cells, so any lookup that leaves A must land on the ring.
 PAD = 5
 
 _LOCK = threading.RLock()
-_STATE = {"ti": None, "kernel": None, "forked": False}
+_STATE = {"ti": None, "kernel": None, "forked": False, "threads": None}
+
+
+def set_threads(threads):
+    """The number of CPU threads Taichi gets when taichi_match starts it (None: one per allowed
+    CPU, pinned one to a CPU). For a process that shares the machine with others doing the same
+    (workers of a pool, one per core): 1. No effect once Taichi runs."""
+    _STATE["threads"] = threads
 
 
 def _after_fork_in_child():
@@ -109,9 +117,9 @@ def ensure_initialized():
             before = _thread_ids()
             with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
                 warnings.simplefilter("ignore", DeprecationWarning)
-                ti.init(arch=ti.cpu, cpu_max_num_threads=len(_allowed_cpus()), offline_cache=True,
-                        log_level=ti.WARN)
-            if os.environ.get("TAICHI_MATCH_PIN_THREADS", "1") != "0":
+                ti.init(arch=ti.cpu, cpu_max_num_threads=_STATE["threads"] or len(_allowed_cpus()),
+                        offline_cache=True, log_level=ti.WARN)
+            if _STATE["threads"] is None and os.environ.get("TAICHI_MATCH_PIN_THREADS", "1") != "0":
                 _pin_threads(sorted(_thread_ids() - before))
         if _STATE["kernel"] is None:
             _STATE["kernel"] = _build_kernel(ti)

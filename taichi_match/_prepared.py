@@ -15,7 +15,7 @@ from ._blur import blur, blur_everywhere, wall_transform
 from ._distance import near_squared_distance, near_weighted_envelope
 from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
-from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted, cells, trinary_code, trinary_values
+from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted, cells, grid_code, trinary_values, twin
 from ._kernels import PAD, TaichiEngine
 from ._pyramid import coarsen, halve_code
 from ._envelope import (EnvelopeEngine, NumpyEnvelope, conflict_grid, envelope_profile, envelope_reach, near_conflict_grid,
@@ -57,8 +57,8 @@ class PreparedMap:
         # The map's geometry, and for "probability" the map itself: a GridMap of its own over the
         # caller's read-only array (no copy), since the matcher caches prepared maps in a
         # WeakKeyDictionary keyed by the caller's map and a reference to it would keep both alive
-        self.frame = grid._with_trusted(grid.prob)
-        self._code = trinary_code(grid.prob) if evidence == "trinary" else None     # the map, for "trinary"
+        self.frame = twin(grid)
+        self._code = grid_code(grid) if evidence == "trinary" else None            # the map, for "trinary"
         self._converted = None
         self.resolution = grid.resolution
         self.blur_width = float(blur_width)

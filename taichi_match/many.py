@@ -1,0 +1,167 @@
+"""Many matches in one call: each map prepared once however many tasks name it, the tasks spread
+over worker processes when an executor is given.
+
+A task is ``(a, b)`` or ``(a, b, initial_pose)`` (None: search without a guess), each map a
+``GridMap``. Every result is the ``MatchResult`` that ``match(a, b, initial_pose, **options)``
+gives, the same pose bit for bit: a match depends only on its maps, its guess and the options,
+not on the other tasks, the process or Taichi's thread count.
+
+With ``executor`` (any ``concurrent.futures.Executor`` whose workers are processes started with
+"spawn" or "forkserver", or Dask's ``Client.get_executor()``) the tasks go out in chunks of
+consecutive tasks, each with the maps it names, sent and prepared once per chunk; a worker
+starts Taichi with the machine's cores shared among the workers (``_kernels.set_threads``).
+Each chunk costs a map's transfer and preparation per distinct map it names, so fewer, larger
+chunks suit tasks that share maps (an all-pairs check), more chunks balance unequal tasks.
+A worker forked after Taichi started in the parent would hang; taichi_match detects it and the
+task fails with a clear ``EngineError`` instead.
+"""
+
+import concurrent.futures
+import math
+import os
+from typing import Iterable, Iterator, List, Optional, Tuple, Union
+
+from ._errors import InvalidMapError, InvalidOptionError, TaichiMatchError
+from ._grid import GridMap, _from_code, grid_code
+from ._kernels import _allowed_cpus, set_threads
+from ._matcher import Matcher, MatchResult
+
+__all__ = ["match_many", "iter_matches"]
+
+Task = Tuple  # (a, b) or (a, b, initial_pose)
+
+
+def match_many(tasks: Iterable[Task], *, executor: Optional[concurrent.futures.Executor] = None,
+               chunk_size: Optional[int] = None, errors: str = "raise",
+               **options) -> List[Union[MatchResult, TaichiMatchError]]:
+    """Match every task, results in the tasks' order (see the module docstring).
+
+    Parameters
+    ----------
+    tasks : iterable of (a, b) or (a, b, initial_pose)
+        Maps as ``GridMap``; ``initial_pose`` r_A2B (x, y, theta) or None.
+    executor : concurrent.futures.Executor, optional
+        Workers to spread the tasks over (processes started with "spawn", or Dask's
+        ``Client.get_executor()``); None: in this process, one ``Matcher``.
+    chunk_size : int, optional
+        Tasks per chunk sent to a worker; default: the tasks shared evenly, one chunk per worker.
+    errors : {"raise", "return"}
+        A task whose input is bad (a ``TaichiMatchError``): raise it (after the running chunks
+        end), or put the error in that task's place and go on.
+    **options
+        Fields of ``MatchOptions``, for every task.
+
+    Returns
+    -------
+    list of MatchResult (or of the errors, with ``errors="return"``)
+    """
+    results = {}
+    for index, result in iter_matches(tasks, executor=executor, chunk_size=chunk_size, errors=errors, **options):
+        results[index] = result
+    return [results[k] for k in range(len(results))]
+
+
+def iter_matches(tasks: Iterable[Task], *, executor: Optional[concurrent.futures.Executor] = None,
+                 chunk_size: Optional[int] = None, errors: str = "raise",
+                 **options) -> Iterator[Tuple[int, Union[MatchResult, TaichiMatchError]]]:
+    """``match_many``'s results as they come: (task index, result) pairs, in the order the tasks
+    (serially) or the chunks (with an executor) finish."""
+    if errors not in ("raise", "return"):
+        raise InvalidOptionError(f"errors must be 'raise' or 'return'; got {errors!r}")
+    tasks = [_task(k, task) for k, task in enumerate(tasks)]
+    matcher = Matcher(**options)                     # the options checked here, before any work
+    if executor is None:
+        for index, (a, b, guess) in enumerate(tasks):
+            yield index, _outcome(lambda: matcher.match(a, b, guess), index, errors)
+        return
+    if chunk_size is None:
+        chunk_size = max(1, math.ceil(len(tasks) / _workers(executor)))
+    elif isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
+        raise InvalidOptionError(f"chunk_size must be a whole number >= 1; got {chunk_size!r}")
+    threads = max(1, len(_allowed_cpus()) // _workers(executor))
+    trinary = matcher.options.evidence == "trinary"
+    futures = {}
+    for start in range(0, len(tasks), chunk_size):
+        maps, named = _chunk(tasks[start:start + chunk_size])
+        maps = [_portable(grid, trinary) for grid in maps]
+        futures[executor.submit(_match_chunk, maps, named, options, threads, os.getpid())] = start
+    try:
+        for future in concurrent.futures.as_completed(futures):
+            start = futures[future]
+            for offset, outcome in enumerate(future.result()):
+                index = start + offset
+                if isinstance(outcome, TaichiMatchError) and errors == "raise":
+                    raise type(outcome)(f"task {index}: {outcome}") from outcome
+                yield index, outcome
+    finally:
+        for future in futures:
+            future.cancel()
+
+
+def _task(index, task):
+    """(a, b, initial_pose or None) from a task, its maps checked."""
+    try:
+        a, b, *rest = task
+    except (TypeError, ValueError):
+        raise InvalidOptionError(f"task {index} must be (a, b) or (a, b, initial_pose); got {task!r:.80}") from None
+    if len(rest) > 1:
+        raise InvalidOptionError(f"task {index} must be (a, b) or (a, b, initial_pose); got {len(rest) + 2} items")
+    for name, grid in (("a", a), ("b", b)):
+        if not isinstance(grid, GridMap):
+            raise InvalidMapError(f"task {index}: {name} must be a GridMap; got {type(grid).__name__}")
+    return a, b, rest[0] if rest else None
+
+
+def _outcome(run, index, errors):
+    try:
+        return run()
+    except TaichiMatchError as exc:
+        if errors == "raise":
+            raise type(exc)(f"task {index}: {exc}") from exc
+        return exc
+
+
+def _chunk(tasks):
+    """(the distinct maps the tasks name, the tasks as (index of a, index of b, guess))."""
+    maps, index = [], {}
+    for a, b, _ in tasks:
+        for grid in (a, b):
+            if id(grid) not in index:
+                index[id(grid)] = len(maps)
+                maps.append(grid)
+    return maps, [(index[id(a)], index[id(b)], guess) for a, b, guess in tasks]
+
+
+def _portable(grid: GridMap, trinary: bool) -> GridMap:
+    """A map as sent to a worker: with ``evidence="trinary"`` made from its ``trinary_code`` (a
+    byte a cell where the map has eight; a match reads nothing else of it, so the result is the
+    same), otherwise the map itself."""
+    return _from_code(grid_code(grid), grid.resolution, grid.corner_pose) if trinary else grid
+
+
+def _workers(executor):
+    """How many tasks the executor runs at once: a process pool's workers, a Dask cluster's
+    threads; otherwise this machine's cores."""
+    count = getattr(executor, "_max_workers", None)
+    client = getattr(executor, "_client", None)
+    if count is None and client is not None:
+        try:
+            count = sum(client.nthreads().values())
+        except Exception:  # pragma: no cover - a client that cannot say
+            count = None
+    return max(1, int(count or len(_allowed_cpus())))
+
+
+def _match_chunk(maps, tasks, options, threads, parent):
+    """A worker's part: the tasks of one chunk with one matcher (each map prepared once). A
+    ``TaichiMatchError`` takes its task's place in the list."""
+    if os.getpid() != parent:           # a worker process, not a thread of the caller's
+        set_threads(threads)
+    matcher = Matcher(**options)
+    out = []
+    for ia, ib, guess in tasks:
+        try:
+            out.append(matcher.match(maps[ia], maps[ib], guess))
+        except TaichiMatchError as exc:
+            out.append(exc)
+    return out
