@@ -1,6 +1,7 @@
 """The ``taichi-match`` command line: parses, calls the library, prints. Heavy imports are lazy."""
 
 import argparse
+import dataclasses
 import math
 import os
 import sys
@@ -112,17 +113,10 @@ def _align(args):
     import taichi_match as tm
 
     a, b = _load_pair(args)
-    options = {k: v for k, v in (("blur", args.blur), ("blur_kind", args.blur_kind),
-                                 ("prior_weight", args.prior_weight),
-                                 ("rotation_scale", args.rotation_scale), ("max_iterations", args.max_iterations),
-                                 ("interpolation", args.interpolation), ("optimizer", args.optimizer))
-               if v is not None}
-    # the paper's discrepancy takes the paper's settings (MatchOptions.paper) under the options given
-    base = tm.MatchOptions.paper() if args.blur_kind in ("gaussian", "ramp") else tm.MatchOptions()
     if args.window is not None and args.initial is None:
         raise tm.InvalidOptionError("--window needs --initial: the guess to search around")
     window = None if args.window is None else (args.window[0], np.radians(args.window[1]))
-    res = tm.Matcher(base, **options).match(a, b, args.initial, search_window=window)
+    res = tm.Matcher(_match_options(args)).match(a, b, args.initial, search_window=window)
     cov = res.calibrated_covariance
     edge = None                             # the g2o EDGE_SE2 line: pose and information matrix
     if args.g2o is not None and not res.accepted:
@@ -132,20 +126,7 @@ def _align(args):
         edge = (f"EDGE_SE2 {args.g2o[0]} {args.g2o[1]} {res.pose[0]:.6f} {res.pose[1]:.6f} {res.pose[2]:.6f} "
                 + " ".join(f"{info[i, j]:.6g}" for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))))
     if args.json:                           # stdout is one JSON document, the edge inside it
-        print(json.dumps({
-            "pose": res.pose.tolist(), "covariance": cov.tolist(), "covariance_unscaled": res.covariance.tolist(),
-            "information": res.information.tolist(), "degenerate": res.degenerate.tolist(),
-            "accepted": bool(res.accepted), "evidence": {
-                "walls_compared": res.evidence.walls_compared, "wall_agreement": res.evidence.wall_agreement,
-                "wall_conflict": res.evidence.wall_conflict,
-                "uncertainty_m": res.evidence.uncertainty if np.isfinite(res.evidence.uncertainty) else None},
-            "status": res.status.name, "converged": bool(res.converged), "message": res.message,
-            "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
-            "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
-            "hypotheses": [{"pose": h.pose.tolist(), "score": h.score} for h in res.hypotheses],
-            "search_complete": res.search_complete, "not_accepted_because": _refusal(res) or None,
-            "g2o": edge,
-        }, indent=2))
+        print(json.dumps({**_result_dict(res), "g2o": edge}, indent=2))
     else:
         x, y, t = res.pose
         print(f"pose (B in A)  x={x:+.4f} m  y={y:+.4f} m  theta={t:+.5f} rad")
@@ -172,6 +153,141 @@ def _align(args):
         from taichi_match import plots
         plots.save_overlay(args.plot, a, b, res.initial_pose, res, title=f"{args.map_a} + {args.map_b}")
     return EXIT_OK if res.accepted else EXIT_NOT_ACCEPTED
+
+
+def _read_pairs(path, degrees):
+    """The pairs of a CSV file: rows ``A, B`` or ``A, B, X, Y, THETA`` (a guess of B's pose in A,
+    THETA in radians or ``degrees``); map paths relative to the file's folder; blank lines, lines
+    starting with # and a first row starting with ``map_a`` (a header) are skipped. Returns
+    [(row number, path A, path B, guess or None)]."""
+    import csv
+
+    from taichi_match import InvalidOptionError, MapFileError
+
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MapFileError(f"cannot read the pairs file {path!r}: {exc}") from exc
+    folder = os.path.dirname(os.path.abspath(path))
+    pairs = []
+    for number, row in enumerate(rows, 1):
+        row = [field.strip() for field in row]
+        if not any(row) or row[0].startswith("#") or (number == 1 and row[0].lower() == "map_a"):
+            continue
+        if len(row) not in (2, 5) or not row[0] or not row[1]:
+            raise InvalidOptionError(f"{path}:{number}: a row is A, B or A, B, X, Y, THETA; got {len(row)} fields")
+        guess = None
+        if len(row) == 5:
+            try:
+                guess = [float(v) for v in row[2:]]
+            except ValueError:
+                raise InvalidOptionError(f"{path}:{number}: X, Y, THETA must be numbers; got {row[2:]}") from None
+            if degrees:
+                guess[2] = math.radians(guess[2])
+        pairs.append((number, *(os.path.join(folder, os.path.expanduser(p)) for p in row[:2]), guess))
+    if not pairs:
+        raise InvalidOptionError(f"{path}: no pairs (rows A, B or A, B, X, Y, THETA)")
+    return pairs
+
+
+def _align_many(args):
+    import json
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    import taichi_match as tm
+    from taichi_match.io import load_map
+
+    options = _match_options(args)
+    if args.workers < 1:
+        raise tm.InvalidOptionError(f"--workers must be >= 1; got {args.workers}")
+    pairs = _read_pairs(args.pairs, args.degrees)
+    out = sys.stdout if args.output in (None, "-") else None
+    if out is None:
+        if os.path.exists(args.output):
+            inputs = [args.pairs] + [path for pair in pairs for path in pair[1:3]]
+            if any(os.path.exists(p) and os.path.samefile(p, args.output) for p in inputs):
+                raise tm.MapFileError(f"refusing to write {args.output!r}: it is an input")
+            if not args.force:
+                raise tm.MapFileError(f"{args.output!r} exists: use --force to replace it")
+    maps, failed = {}, {}                       # each map read once, however many pairs name it
+    for _, *paths, _ in pairs:
+        for p in paths:
+            if p not in maps and p not in failed:
+                try:
+                    maps[p] = load_map(p)
+                except (tm.TaichiMatchError, ValueError, OSError) as exc:
+                    failed[p] = str(exc)
+    runnable = [(k, pair) for k, pair in enumerate(pairs) if pair[1] in maps and pair[2] in maps]
+    tasks = [(maps[a], maps[b], guess) for _, (_, a, b, guess) in runnable]
+    lines, written, accepted = {}, 0, 0
+    for k, (number, a, b, _) in enumerate(pairs):
+        if a in failed or b in failed:
+            lines[k] = {"error": failed.get(a) or failed.get(b)}
+    bar = _progress("align-many", len(pairs), args.progress or sys.stderr.isatty(), unit="pair")
+    executor = (ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn"))
+                if args.workers > 1 else None)
+    stream = out or open(args.output, "w")
+    try:
+        results = tm.iter_matches(tasks, options, executor=executor, chunk_size=args.chunk_size, errors="return")
+        while True:
+            while written in lines:             # in the file's order, each line as soon as it can be
+                number, a, b, _ = pairs[written]
+                record = {"row": number, "map_a": a, "map_b": b, **lines.pop(written)}
+                accepted += bool(record.get("accepted"))
+                stream.write(json.dumps(record) + "\n")
+                stream.flush()
+                written += 1
+                if bar is not None:
+                    bar(written, len(pairs))
+            if written == len(pairs):
+                break
+            index, res = next(results)
+            k = runnable[index][0]
+            lines[k] = {"error": str(res)} if isinstance(res, Exception) else _result_dict(res)
+    finally:
+        if executor is not None:
+            executor.shutdown(cancel_futures=True)
+        if out is None:
+            stream.close()
+    if out is None:
+        print(f"{accepted} of {len(pairs)} pairs accepted; wrote {args.output}", file=sys.stderr)
+    return EXIT_OK if accepted == len(pairs) else EXIT_NOT_ACCEPTED
+
+
+def _match_options(args):
+    """The MatchOptions the command's options ask for: the paper's settings (MatchOptions.paper)
+    under the paper's discrepancy, the defaults otherwise, with the options given on top."""
+    import taichi_match as tm
+
+    options = {k: v for k, v in (("blur", args.blur), ("blur_kind", args.blur_kind),
+                                 ("prior_weight", args.prior_weight),
+                                 ("rotation_scale", args.rotation_scale), ("max_iterations", args.max_iterations),
+                                 ("interpolation", args.interpolation), ("optimizer", args.optimizer))
+               if v is not None}
+    base = tm.MatchOptions.paper() if args.blur_kind in ("gaussian", "ramp") else tm.MatchOptions()
+    return dataclasses.replace(base, **options) if options else base
+
+
+def _result_dict(res) -> dict:
+    """A MatchResult as plain JSON types (the calibrated covariance as "covariance")."""
+    import numpy as np
+
+    return {
+        "pose": res.pose.tolist(), "covariance": res.calibrated_covariance.tolist(),
+        "covariance_unscaled": res.covariance.tolist(),
+        "information": res.information.tolist(), "degenerate": res.degenerate.tolist(),
+        "accepted": bool(res.accepted), "evidence": {
+            "walls_compared": res.evidence.walls_compared, "wall_agreement": res.evidence.wall_agreement,
+            "wall_conflict": res.evidence.wall_conflict,
+            "uncertainty_m": res.evidence.uncertainty if np.isfinite(res.evidence.uncertainty) else None},
+        "status": res.status.name, "converged": bool(res.converged), "message": res.message,
+        "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
+        "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
+        "hypotheses": [{"pose": h.pose.tolist(), "score": h.score} for h in res.hypotheses],
+        "search_complete": res.search_complete, "not_accepted_because": _refusal(res) or None,
+    }
 
 
 def _refusal(res) -> str:
@@ -322,7 +438,7 @@ def _demo_slam(args):
     return 0
 
 
-def _progress(label, total, enabled):
+def _progress(label, total, enabled, unit="scan"):
     """A tqdm bar on stderr when tqdm is installed, else our one-line bar; ``bar(done, total)``."""
     if not enabled:
         return None
@@ -330,7 +446,7 @@ def _progress(label, total, enabled):
         from tqdm import tqdm
     except ImportError:
         return _ProgressBar(label, True)
-    bar = tqdm(total=total, desc=label, unit="scan", file=sys.stderr)
+    bar = tqdm(total=total, desc=label, unit=unit, file=sys.stderr)
 
     def update(done, _total):
         bar.update(done - bar.n)
@@ -347,6 +463,21 @@ def _add_map_arguments(parser):
                             help=f"override map {which.upper()}'s occupied_thresh and free_thresh")
         parser.add_argument(f"--resolution-{which}", type=float, metavar="M",
                             help=f"override map {which.upper()}'s resolution (metres per cell)")
+
+
+def _add_match_options(parser):
+    """The match options of align and align-many (``_match_options`` reads them)."""
+    parser.add_argument("--blur", type=float, help="blur width, metres")
+    parser.add_argument("--blur-kind", choices=("envelope", "gaussian", "ramp"),
+                        help="the discrepancy: 'envelope' (default) or the paper's |p_A - p_B| on a 'gaussian' "
+                             "or 'ramp' blur")
+    parser.add_argument("--interpolation", choices=("nearest", "bilinear"),
+                        help="lookup in A: nearest cell (the paper's, default) or bilinear (slower, finer; "
+                             "with --blur-kind gaussian or ramp only)")
+    parser.add_argument("--optimizer", choices=("newton", "bfgs"), help="default: newton (nearest), bfgs (bilinear)")
+    parser.add_argument("--prior-weight", type=float, help="K of eq. (8)")
+    parser.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")
+    parser.add_argument("--max-iterations", type=int, help="optimiser iterations at the coarsest level (0: none)")
 
 
 def _version() -> str:
@@ -417,18 +548,25 @@ def main(argv=None):
     align.add_argument("--g2o", nargs=2, type=int, metavar=("ID_A", "ID_B"),
                        help="also print a g2o EDGE_SE2 line (pose and information matrix; with --json, the "
                             "document's \"g2o\" field)")
-    align.add_argument("--blur", type=float, help="blur width, metres")
-    align.add_argument("--blur-kind", choices=("envelope", "gaussian", "ramp"),
-                       help="the discrepancy: 'envelope' (default) or the paper's |p_A - p_B| on a 'gaussian' "
-                            "or 'ramp' blur")
-    align.add_argument("--interpolation", choices=("nearest", "bilinear"),
-                       help="lookup in A: nearest cell (the paper's, default) or bilinear (slower, finer; "
-                            "with --blur-kind gaussian or ramp only)")
-    align.add_argument("--optimizer", choices=("newton", "bfgs"), help="default: newton (nearest), bfgs (bilinear)")
-    align.add_argument("--prior-weight", type=float, help="K of eq. (8)")
-    align.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")
-    align.add_argument("--max-iterations", type=int, help="optimiser iterations at the coarsest level (0: none)")
+    _add_match_options(align)
     align.set_defaults(func=_align)
+    many = sub.add_parser("align-many", help="align the pairs of a CSV file (rows A, B or A, B, X, Y, THETA), one "
+                                             "JSON line per pair in the file's order (exit 0: every pair accepted, "
+                                             "1: not every pair, 2: bad input)")
+    many.add_argument("pairs", metavar="PAIRS.csv", help="rows: map A, map B (map_server .yaml or .npz, relative to "
+                                                         "the file's folder), optionally a guess X, Y, THETA of B's "
+                                                         "pose in A (metres, radians); without one, a search")
+    many.add_argument("--degrees", action="store_true", help="THETA of the guesses is in degrees, not radians")
+    many.add_argument("-o", "--output", metavar="OUT.jsonl", help="write the JSON lines here (default: stdout)")
+    many.add_argument("--force", action="store_true", help="replace an existing --output (never an input)")
+    many.add_argument("--workers", type=int, default=1,
+                      help="worker processes (default %(default)s: this process); each map is read once and sent "
+                           "to a worker with the pairs that name it")
+    many.add_argument("--chunk-size", type=int, metavar="N",
+                      help="pairs per chunk sent to a worker (default: the pairs shared evenly)")
+    many.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
+    _add_match_options(many)
+    many.set_defaults(func=_align_many)
     merge = sub.add_parser("merge", help="fuse map B into map A's frame and save a map_server map")
     _add_map_arguments(merge)
     merge.add_argument("--pose", nargs=3, type=float, metavar=("X", "Y", "THETA"),
@@ -477,7 +615,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if getattr(args, "trials", 1) < 1 or getattr(args, "covariance_trials", 2) < 2:
         parser.error("--trials must be >= 1 and --covariance-trials >= 2")
-    if getattr(args, "degrees", False):
+    if getattr(args, "degrees", False) and args.command != "align-many":
         name = "initial" if args.command == "align" else "pose"
         if getattr(args, name) is None:
             parser.error(f"--degrees needs --{name}: it says how to read --{name}'s THETA")

@@ -24,16 +24,16 @@ from typing import Iterable, Iterator, List, Optional, Tuple, Union
 from ._errors import InvalidMapError, InvalidOptionError, TaichiMatchError
 from ._grid import GridMap, _from_code, grid_code
 from ._kernels import _allowed_cpus, set_threads
-from ._matcher import Matcher, MatchResult
+from ._matcher import Matcher, MatchOptions, MatchResult
 
 __all__ = ["match_many", "iter_matches"]
 
 Task = Tuple  # (a, b) or (a, b, initial_pose)
 
 
-def match_many(tasks: Iterable[Task], *, executor: Optional[concurrent.futures.Executor] = None,
-               chunk_size: Optional[int] = None, errors: str = "raise",
-               **options) -> List[Union[MatchResult, TaichiMatchError]]:
+def match_many(tasks: Iterable[Task], options: Optional[MatchOptions] = None, *,
+               executor: Optional[concurrent.futures.Executor] = None, chunk_size: Optional[int] = None,
+               errors: str = "raise", **overrides) -> List[Union[MatchResult, TaichiMatchError]]:
     """Match every task, results in the tasks' order (see the module docstring).
 
     Parameters
@@ -48,28 +48,31 @@ def match_many(tasks: Iterable[Task], *, executor: Optional[concurrent.futures.E
     errors : {"raise", "return"}
         A task whose input is bad (a ``TaichiMatchError``): raise it (after the running chunks
         end), or put the error in that task's place and go on.
-    **options
-        Fields of ``MatchOptions``, for every task.
+    options : MatchOptions, optional
+        The options of every task (default: ``MatchOptions()``).
+    **overrides
+        Fields of ``MatchOptions`` to change in ``options``.
 
     Returns
     -------
     list of MatchResult (or of the errors, with ``errors="return"``)
     """
     results = {}
-    for index, result in iter_matches(tasks, executor=executor, chunk_size=chunk_size, errors=errors, **options):
+    for index, result in iter_matches(tasks, options, executor=executor, chunk_size=chunk_size, errors=errors,
+                                      **overrides):
         results[index] = result
     return [results[k] for k in range(len(results))]
 
 
-def iter_matches(tasks: Iterable[Task], *, executor: Optional[concurrent.futures.Executor] = None,
-                 chunk_size: Optional[int] = None, errors: str = "raise",
-                 **options) -> Iterator[Tuple[int, Union[MatchResult, TaichiMatchError]]]:
+def iter_matches(tasks: Iterable[Task], options: Optional[MatchOptions] = None, *,
+                 executor: Optional[concurrent.futures.Executor] = None, chunk_size: Optional[int] = None,
+                 errors: str = "raise", **overrides) -> Iterator[Tuple[int, Union[MatchResult, TaichiMatchError]]]:
     """``match_many``'s results as they come: (task index, result) pairs, in the order the tasks
     (serially) or the chunks (with an executor) finish."""
     if errors not in ("raise", "return"):
         raise InvalidOptionError(f"errors must be 'raise' or 'return'; got {errors!r}")
     tasks = [_task(k, task) for k, task in enumerate(tasks)]
-    matcher = Matcher(**options)                     # the options checked here, before any work
+    matcher = Matcher(options, **overrides)          # the options checked here, before any work
     if executor is None:
         for index, (a, b, guess) in enumerate(tasks):
             yield index, _outcome(lambda: matcher.match(a, b, guess), index, errors)
@@ -84,7 +87,7 @@ def iter_matches(tasks: Iterable[Task], *, executor: Optional[concurrent.futures
     for start in range(0, len(tasks), chunk_size):
         maps, named = _chunk(tasks[start:start + chunk_size])
         maps = [_portable(grid, trinary) for grid in maps]
-        futures[executor.submit(_match_chunk, maps, named, options, threads, os.getpid())] = start
+        futures[executor.submit(_match_chunk, maps, named, matcher.options, threads, os.getpid())] = start
     try:
         for future in concurrent.futures.as_completed(futures):
             start = futures[future]
@@ -157,7 +160,7 @@ def _match_chunk(maps, tasks, options, threads, parent):
     ``TaichiMatchError`` takes its task's place in the list."""
     if os.getpid() != parent:           # a worker process, not a thread of the caller's
         set_threads(threads)
-    matcher = Matcher(**options)
+    matcher = Matcher(options)
     out = []
     for ia, ib, guess in tasks:
         try:

@@ -236,3 +236,58 @@ def test_merge_refuses_a_bad_resolution(resolution):
     a = io.GridMap(np.zeros((4, 4)), 0.1)
     with pytest.raises(InvalidOptionError, match="resolution"):
         merge_maps(a, a, (0.0, 0.0, 0.0), resolution=resolution)
+
+
+def write_pairs(path, rows):
+    path.write_text("\n".join(",".join(str(v) for v in row) for row in rows) + "\n")
+    return path
+
+
+def test_align_many_writes_a_line_per_pair_in_order(pair, tmp_path, capsys):
+    a, b, truth = pair
+    pairs = write_pairs(tmp_path / "pairs.csv", [
+        ("map_a", "map_b", "x", "y", "theta"), ("a.yaml", "b.yaml", 0, 0, 0), ("# a comment",),
+        ("a.yaml", "b.yaml", 0.1, 0.0, math.degrees(0.02)), ("a.yaml", "missing.yaml", 0, 0, 0), ("a.yaml", "b.yaml")])
+    code = main(["align-many", str(pairs), "--degrees", "-o", str(tmp_path / "out.jsonl")])
+    lines = [json.loads(line) for line in (tmp_path / "out.jsonl").read_text().splitlines()]
+    assert code == 1                                   # one pair failed: not every pair accepted
+    assert "3 of 4 pairs accepted" in capsys.readouterr().err
+    assert [line["row"] for line in lines] == [2, 4, 5, 6]
+    assert "missing.yaml" in lines[2]["error"] and "pose" not in lines[2]
+    for line in (lines[0], lines[1], lines[3]):        # with a guess, in degrees, and without one
+        assert line["accepted"] and np.allclose(line["pose"], truth, atol=0.05)
+    assert lines[1]["initial_pose"][2] == pytest.approx(0.02)
+    expected = json.loads((main(["align", str(a), str(b), "--initial", "0", "0", "0", "--json"]), capsys.readouterr().out)[1])
+    assert lines[0]["pose"] == expected["pose"] and lines[0]["covariance"] == expected["covariance"]
+
+
+def test_align_many_on_two_workers_gives_the_same_lines(pair, tmp_path, capsys):
+    pairs = write_pairs(tmp_path / "pairs.csv", [("a.yaml", "b.yaml", 0, 0, 0), ("b.yaml", "a.yaml", 0, 0, 0),
+                                                 ("a.yaml", "b.yaml", 0.1, 0.1, 0.0)])
+    assert main(["align-many", str(pairs)]) == 0
+    serial = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert main(["align-many", str(pairs), "--workers", "2", "--chunk-size", "1"]) == 0
+    parallel = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    drop = ("seconds",)
+    assert [{k: v for k, v in d.items() if k not in drop} for d in parallel] == \
+        [{k: v for k, v in d.items() if k not in drop} for d in serial]
+
+
+@pytest.mark.parametrize("rows, message", [([("a.yaml",)], "a row is"), ([("a.yaml", "b.yaml", "x", 0, 0)], "numbers"),
+                                           ([("# nothing",)], "no pairs")])
+def test_align_many_bad_pairs_files_are_bad_input(pair, tmp_path, capsys, rows, message):
+    pairs = write_pairs(tmp_path / "pairs.csv", rows)
+    assert main(["align-many", str(pairs)]) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_align_many_refuses_to_overwrite(pair, tmp_path, capsys):
+    pairs = write_pairs(tmp_path / "pairs.csv", [("a.yaml", "b.yaml", 0, 0, 0)])
+    assert main(["align-many", str(pairs), "-o", str(pairs), "--force"]) == 2
+    assert "is an input" in capsys.readouterr().err and pairs.read_text().startswith("a.yaml")
+    (tmp_path / "out.jsonl").write_text("keep")
+    assert main(["align-many", str(pairs), "-o", str(tmp_path / "out.jsonl")]) == 2
+    assert (tmp_path / "out.jsonl").read_text() == "keep"
+    assert main(["align-many", str(tmp_path / "none.csv")]) == 2
+    assert main(["align-many", str(pairs), "--workers", "0"]) == 2
+    assert "workers" in capsys.readouterr().err
