@@ -127,3 +127,14 @@ def test_a_bad_guess_fails_its_task_only_when_asked(tasks):
         assert isinstance(returned[1], tm.InvalidPoseError) and np.array_equal(returned[0].pose, results[0].pose)
         with pytest.raises(tm.InvalidPoseError, match="task 1"):
             tm.match_many(bad, executor=pool)
+
+
+@pytest.mark.parametrize("count, chunks", [(0, 2), (1, 4), (5, 2), (40, 3), (1225, 2), (100, 100)])
+def test_chunks_deal_every_task_out_once(count, chunks):
+    from taichi_match.many import BLOCK, _chunks
+
+    out = _chunks(count, chunks)
+    assert sorted(k for c in out for k in c) == list(range(count))
+    assert len(out) <= max(chunks, 1) and all(c for c in out)
+    if count >= 2 * BLOCK * chunks:                       # blocks of BLOCK consecutive tasks
+        assert out[0][:BLOCK] == list(range(BLOCK)) and out[1 % len(out)][0] == BLOCK
