@@ -56,10 +56,11 @@ def prepare_fully(matcher, grid):
     return matcher.prepare(grid)
 
 
-def peak_rss_mb():
+def status_mb(field):
+    """A memory field of /proc/self/status (VmHWM: peak resident, VmRSS: resident), MB."""
     with open("/proc/self/status") as f:
         for line in f:
-            if line.startswith("VmHWM:"):
+            if line.startswith(field + ":"):
                 return int(line.split()[1]) / 1024.0
     return float("nan")
 
@@ -98,21 +99,13 @@ def large_map_figures(side=4000):
     gdc = real_maps.load_maps()["gdc_3"]
     reps = (-(-side // gdc.shape[0]), -(-side // gdc.shape[1]))
     grid = tm.GridMap(np.tile(gdc.prob, reps)[:side, :side], gdc.resolution)
-    before = peak_rss_mb()
+    before = status_mb("VmHWM")
     t0 = time.perf_counter()
     prepared = prepare_fully(tm.Matcher(), grid)
     seconds = time.perf_counter() - t0
-    grown = peak_rss_mb() - before
+    grown = status_mb("VmHWM") - before
     del prepared
     return seconds, grown
-
-
-def rss_mb():
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def consecutive_tasks(name):
@@ -209,7 +202,7 @@ def memory_figures(tasks, matches=10_000, every=10):
         a, b, guess = current[k % len(current)]
         matcher.match(a, b, guess)
         if (k + 1) % (matches // 10) == 0:
-            samples.append(rss_mb())
+            samples.append(status_mb("VmRSS"))
     return samples
 
 
