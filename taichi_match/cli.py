@@ -5,32 +5,8 @@ import dataclasses
 import math
 import os
 import sys
-import time
 
 __all__ = ["main"]
-
-
-class _ProgressBar:
-    """A one-line progress bar on stderr (only when stderr is a terminal, or forced)."""
-
-    def __init__(self, label, enabled):
-        self.label = label
-        self.enabled = enabled
-        self.start = time.perf_counter()
-        self.last = 0.0
-
-    def __call__(self, done, total):
-        now = time.perf_counter()
-        if not self.enabled or (now - self.last < 0.2 and done < total):
-            return
-        self.last = now
-        width = 30
-        filled = int(width * done / max(total, 1))
-        sys.stderr.write(f"\r{self.label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total} "
-                         f"{now - self.start:5.0f} s")
-        if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
 
 
 def _demo(args):
@@ -75,7 +51,7 @@ def _demo(args):
 def _reproduce(args):
     from taichi_match.reproduce import reproduce
 
-    bar = _ProgressBar("matching", args.progress or sys.stderr.isatty())
+    bar = _progress("matching", None, args.progress or sys.stderr.isatty(), unit="match")
     out = reproduce(args.out, trials=args.trials, covariance_trials=args.covariance_trials, seed=args.seed,
                     progress=bar)
     print(open(os.path.join(args.out, "report.md")).read().split("## Figures")[0].rstrip())
@@ -439,16 +415,18 @@ def _demo_slam(args):
 
 
 def _progress(label, total, enabled, unit="scan"):
-    """A tqdm bar on stderr when tqdm is installed, else our one-line bar; ``bar(done, total)``."""
+    """A tqdm bar on stderr, ``bar(done, total)``; None when not ``enabled`` or without tqdm (the
+    ``slam`` extra): the work runs the same without one."""
     if not enabled:
         return None
     try:
         from tqdm import tqdm
     except ImportError:
-        return _ProgressBar(label, True)
+        return None
     bar = tqdm(total=total, desc=label, unit=unit, file=sys.stderr)
 
     def update(done, _total):
+        bar.total = _total
         bar.update(done - bar.n)
         if done >= _total:
             bar.close()

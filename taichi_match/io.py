@@ -1,6 +1,8 @@
-"""Map files: ROS ``map_server`` YAML + PGM/PNG, ``nav_msgs/OccupancyGrid``-style arrays, .npz.
+"""Map files: ROS ``map_server`` YAML + image, ``nav_msgs/OccupancyGrid``-style arrays, .npz.
 
-Apart from the core (which never imports it). ROS conventions, as ``map_server`` loads a map:
+Apart from the core (which never imports it). YAML through PyYAML, images through Pillow (the
+``maps`` extra); what is ours is map_server's rules and the bounds on hostile files. ROS
+conventions, as ``map_server`` loads a map:
 
 - The YAML holds ``image`` (a path relative to the YAML), ``resolution``, ``origin: [x, y, yaw]``
   (the pose of the lower-left pixel in the map frame), ``negate``, ``occupied_thresh``,
@@ -17,12 +19,11 @@ Apart from the core (which never imports it). ROS conventions, as ``map_server``
 
 import contextlib
 import os
-import re
 import signal
 import stat
-import struct
 import tempfile
 import threading
+import warnings
 import zipfile
 import zlib
 from io import BytesIO as io_bytes
@@ -65,21 +66,21 @@ def read_ros_map(yaml_path, *, occupied_thresh=None, free_thresh=None, negate=No
 
 
 def read_map_yaml(yaml_path):
-    """The fields of a map_server YAML as a dict, with ``image`` resolved against the YAML's folder."""
+    """The fields of a map_server YAML as a dict, with ``image`` resolved against the YAML's folder
+    (PyYAML's ``safe_load``: block and flow style, comments, anchors)."""
+    yaml = _yaml()
     data = _read_bounded(yaml_path, MAX_YAML_BYTES, "map YAML")
     try:
-        text = data.decode("utf-8")
+        meta = yaml.safe_load(data.decode("utf-8"))
     except UnicodeDecodeError as exc:
         raise MapFormatError(f"{yaml_path}: not a text YAML file ({exc})") from exc
-    meta = {}
-    for number, line in enumerate(text.splitlines(), 1):
-        line = _strip_comment(line).strip()
-        if not line or line in ("---", "..."):
-            continue
-        key, sep, value = line.partition(":")
-        if not sep or not key.strip():
-            raise MapFormatError(f"{yaml_path}, line {number}: expected 'key: value', got {line!r}")
-        meta[key.strip()] = _parse_scalar(value.strip(), yaml_path, number)
+    except yaml.YAMLError as exc:
+        raise MapFormatError(f"{yaml_path}: not valid YAML ({' '.join(str(exc).split())})") from exc
+    except RecursionError as exc:
+        raise MapFormatError(f"{yaml_path}: not map_server YAML (nested too deeply)") from exc
+    if not isinstance(meta, dict):
+        raise MapFormatError(f"{yaml_path}: expected 'key: value' fields (image, resolution, origin, ...); got "
+                             f"{type(meta).__name__}")
     for key in ("image", "resolution", "origin"):
         if key not in meta:
             raise MapFormatError(f"{yaml_path}: the field {key!r} is missing (map_server needs image, "
@@ -94,42 +95,36 @@ def read_map_yaml(yaml_path):
     return meta
 
 
-def _strip_comment(line):
-    out, quote = [], None
-    for ch in line:
-        if quote:
-            quote = None if ch == quote else quote
-        elif ch in "'\"":
-            quote = ch
-        elif ch == "#":
-            break
-        out.append(ch)
-    return "".join(out)
+def _yaml():
+    try:
+        import yaml
+    except ImportError as exc:                   # pragma: no cover - depends on the installation
+        raise ImportError("map_server maps need PyYAML and Pillow: pip install 'taichi-match[maps]'") from exc
+    return yaml
 
 
-_NUMBER = re.compile(r"^[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$")
+def _pillow():
+    try:
+        from PIL import Image
+    except ImportError as exc:                   # pragma: no cover - depends on the installation
+        raise ImportError("map images need Pillow: pip install 'taichi-match[maps]'") from exc
+    return Image
 
 
-def _parse_scalar(text, path, number):
-    if text.startswith("[") or text.endswith("]"):
-        if not (text.startswith("[") and text.endswith("]")):
-            raise MapFormatError(f"{path}, line {number}: unbalanced list {text!r}")
-        items = [t.strip() for t in text[1:-1].split(",") if t.strip()]
-        if any(t.startswith("[") or t.endswith("]") for t in items):
-            raise MapFormatError(f"{path}, line {number}: nested lists are not map_server YAML")
-        return [_parse_scalar(t, path, number) for t in items]
-    if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
-        return text[1:-1]
-    if _NUMBER.match(text):
-        return float(text) if any(c in text for c in ".eE") else int(text)
-    if text.lower() in ("true", "false"):
-        return text.lower() == "true"
-    return text
+def _as_number(value):
+    """A YAML scalar as map_server's parser reads a number: YAML 1.1 (PyYAML) leaves ``1e-3``, a
+    float without a dot, a string, which yaml-cpp reads as a double."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
 
 
 def _check_meta(meta, path):
     def number(key, low=None, high=None, strict_low=False):
-        value = meta[key]
+        value = _as_number(meta[key])
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
             raise MapFormatError(f"{path}: {key!r} must be a number; got {value!r}")
         if low is not None and (value < low or (strict_low and value == low)) or high is not None and value > high:
@@ -143,6 +138,7 @@ def _check_meta(meta, path):
         raise MapFormatError(f"{path}: free_thresh {meta['free_thresh']} is above occupied_thresh "
                              f"{meta['occupied_thresh']}")
     origin = meta["origin"]
+    origin = [_as_number(v) for v in origin] if isinstance(origin, list) else origin
     if not isinstance(origin, list) or len(origin) not in (2, 3) or \
             not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in origin):
         raise MapFormatError(f"{path}: 'origin' must be [x, y, yaw] numbers; got {origin!r}")
@@ -211,9 +207,9 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
             raise InvalidOptionError("scale mode stores unknown cells as transparency: use a .png image")
         grey = np.rint(255 * (1 - q)).astype(np.uint8)
         pixels = np.dstack([grey, np.where(unknown, 0, 255).astype(np.uint8)])
-    x0, y0, yaw = grid.corner_pose
-    text = (f"image: {image}\nresolution: {grid.resolution!r}\norigin: [{x0!r}, {y0!r}, {yaw!r}]\n"
-            f"negate: 0\noccupied_thresh: {occupied_thresh!r}\nfree_thresh: {free_thresh!r}\nmode: {mode}\n")
+    fields = {"image": image, "resolution": float(grid.resolution), "origin": [float(v) for v in grid.corner_pose],
+              "negate": 0, "occupied_thresh": float(occupied_thresh), "free_thresh": float(free_thresh), "mode": mode}
+    text = _yaml().safe_dump(fields, sort_keys=False, default_flow_style=None)
     _replace_files([(image_path, _image_bytes(image_path, pixels)), (yaml_path, text.encode("utf-8"))])
 
 
@@ -299,17 +295,44 @@ def _signals_held(signums=("SIGINT", "SIGTERM", "SIGHUP")):
 
 
 # ---------------------------------------------------------------------------------------------
-# Images: PGM (P2, P5) and PNG (8-bit grey, grey + alpha, RGB, RGBA; not interlaced)
+# Images (Pillow): the formats map_server's SDL_image reads
+
+
+IMAGE_FORMATS = ("PNG", "PPM", "BMP", "TIFF", "JPEG", "GIF")      # Pillow's names; PPM holds PGM
 
 
 def read_image(path):
-    """An image as a uint8 array (rows, cols) or (rows, cols, channels), first row at the top."""
+    """An image as a uint8 array (rows, cols) or (rows, cols, channels), first row at the top:
+    grey, grey + alpha, RGB or RGBA as stored; palettes expanded; 16-bit levels scaled to 8 bits.
+    Its size is checked against ``MAX_MAP_CELLS`` from the header, before the pixels are decoded."""
+    Image = _pillow()
     data = _read_bounded(path, MAX_FILE_BYTES, "image")
-    if data[:2] in (b"P5", b"P2"):
-        return _read_pgm(data, path)
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
-        return _read_png(data, path)
-    raise MapFormatError(f"{path}: not a PGM (P2/P5) or PNG image")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)     # our own limit is checked
+            with Image.open(io_bytes(data), formats=IMAGE_FORMATS) as image:
+                _check_size(*image.size, path)
+                image.load()
+                return _pixels(image)
+    except MapFormatError:
+        raise
+    except Image.UnidentifiedImageError as exc:
+        raise MapFormatError(f"{path}: not an image map_server reads (PGM, PNG, BMP, TIFF, JPEG, GIF)") from exc
+    except MemoryError:
+        raise
+    except Exception as exc:       # Pillow's decoders on a damaged file: OSError, SyntaxError, ValueError, ...
+        raise MapFormatError(f"{path}: a truncated, corrupt or unsupported image ({type(exc).__name__}: {exc})") from exc
+
+
+def _pixels(image):
+    """A decoded Pillow image as ``read_image`` returns it."""
+    if image.mode in ("I", "I;16", "I;16B", "I;16L", "F"):                    # 16-bit grey (PGM, PNG)
+        levels = np.asarray(image, dtype=np.float64)
+        return np.clip(np.rint(levels * (255.0 / 65535.0)), 0, 255).astype(np.uint8)
+    if image.mode not in ("L", "LA", "RGB", "RGBA"):
+        transparent = image.mode in ("PA", "RGBa", "La") or "transparency" in image.info
+        image = image.convert("RGBA" if transparent else ("L" if image.mode == "1" else "RGB"))
+    return np.array(image, dtype=np.uint8)
 
 
 def _read_bounded(path, limit, what):
@@ -338,108 +361,6 @@ def _check_size(width, height, path):
         raise MapFormatError(f"{path}: a {width} x {height} image is larger than the limit of {MAX_MAP_CELLS} cells")
 
 
-def _read_pgm(data, path):
-    fields, pos = [], 2
-    while len(fields) < 3:
-        match = re.compile(rb"\s*(#[^\n]*\n\s*)*(\S+)").match(data, pos)
-        if match is None:
-            raise MapFormatError(f"{path}: truncated PGM header")
-        fields.append(match.group(2))
-        pos = match.end()
-    try:
-        width, height, maxval = (int(v) for v in fields)
-    except ValueError as exc:
-        raise MapFormatError(f"{path}: bad PGM header {fields!r}") from exc
-    if width < 1 or height < 1 or not 0 < maxval < 65536:
-        raise MapFormatError(f"{path}: bad PGM size {width}x{height} or maxval {maxval}")
-    _check_size(width, height, path)
-    if data[:2] == b"P2":
-        try:
-            values = np.array(data[pos:].split()[:width * height], dtype=np.int64)
-        except (ValueError, OverflowError) as exc:
-            raise MapFormatError(f"{path}: a P2 pixel is not a number ({exc})") from exc
-        if values.size < width * height:
-            raise MapFormatError(f"{path}: truncated PGM: {values.size} of {width * height} pixels")
-        if values.min() < 0 or values.max() > maxval:
-            raise MapFormatError(f"{path}: P2 pixel values must lie in 0..{maxval}")
-        pixels = values
-    else:
-        pos += 1                                                   # the single whitespace after maxval
-        dtype = np.dtype(">u2") if maxval > 255 else np.dtype(np.uint8)
-        need = width * height * dtype.itemsize
-        if len(data) - pos < need:
-            raise MapFormatError(f"{path}: truncated PGM: {len(data) - pos} of {need} bytes")
-        pixels = np.frombuffer(data, dtype=dtype, count=width * height, offset=pos).astype(np.int64)
-    pixels = np.rint(pixels * (255.0 / maxval)) if maxval != 255 else pixels
-    return pixels.reshape(height, width).astype(np.uint8)
-
-
-_PNG_CHANNELS = {0: 1, 2: 3, 4: 2, 6: 4}
-
-
-def _read_png(data, path):
-    pos, chunks, header = 8, [], None
-    while pos + 8 <= len(data):
-        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
-        body = data[pos + 8:pos + 8 + length]
-        if len(body) < length:
-            raise MapFormatError(f"{path}: truncated PNG chunk {kind!r}")
-        if kind == b"IHDR":
-            if length != 13:
-                raise MapFormatError(f"{path}: PNG header of {length} bytes, not 13")
-            header = struct.unpack(">IIBBBBB", body)
-        elif kind == b"IDAT":
-            chunks.append(body)
-        elif kind == b"IEND":
-            break
-        pos += 12 + length
-    if header is None or not chunks:
-        raise MapFormatError(f"{path}: PNG without IHDR or IDAT")
-    width, height, depth, colour, _, _, interlace = header
-    if depth != 8 or colour not in _PNG_CHANNELS or interlace:
-        raise MapFormatError(f"{path}: unsupported PNG (bit depth {depth}, colour type {colour}, "
-                             f"interlace {interlace}); save it as 8-bit grey/RGB(A), not interlaced")
-    channels = _PNG_CHANNELS[colour]
-    _check_size(width, height, path)
-    stride = width * channels
-    try:                     # inflated no further than the header declares (a zlib bomb stops there)
-        inflate = zlib.decompressobj()
-        raw = inflate.decompress(b"".join(chunks), height * (stride + 1))
-    except zlib.error as exc:
-        raise MapFormatError(f"{path}: corrupt PNG data ({exc})") from exc
-    if inflate.unconsumed_tail:
-        raise MapFormatError(f"{path}: more PNG data than its {width} x {height} header declares")
-    if len(raw) < height * (stride + 1):
-        raise MapFormatError(f"{path}: truncated PNG data")
-    rows = np.frombuffer(raw, np.uint8, count=height * (stride + 1)).reshape(height, stride + 1)
-    out = np.zeros((height, stride), np.int64)
-    previous = np.zeros(stride, np.int64)
-    for r in range(height):
-        kind, line = rows[r, 0], rows[r, 1:].astype(np.int64)
-        if kind == 0:
-            cur = line
-        elif kind == 2:
-            cur = (line + previous) & 255
-        elif kind in (1, 3, 4):
-            cur = np.zeros(stride, np.int64)
-            for c in range(stride):                    # left-dependent filters: one pixel at a time
-                left = cur[c - channels] if c >= channels else 0
-                up_left = previous[c - channels] if c >= channels else 0
-                if kind == 1:
-                    pred = left
-                elif kind == 3:
-                    pred = (left + previous[c]) // 2
-                else:
-                    pa, pb, pc = abs(previous[c] - up_left), abs(left - up_left), abs(left + previous[c] - 2 * up_left)
-                    pred = left if pa <= pb and pa <= pc else (previous[c] if pb <= pc else up_left)
-                cur[c] = (line[c] + pred) & 255
-        else:
-            raise MapFormatError(f"{path}: corrupt PNG filter type {kind} in row {r}")
-        out[r] = previous = cur
-    image = out.astype(np.uint8).reshape(height, width, channels)
-    return image[..., 0] if channels == 1 else image
-
-
 def write_image(path, pixels):
     """Save a uint8 image (rows, cols) or (rows, cols, 2|3|4): PGM (P5, grey only) or PNG (by the
     name's extension), replacing any old file whole (see ``write_ros_map``)."""
@@ -448,24 +369,14 @@ def write_image(path, pixels):
 
 def _image_bytes(path, pixels):
     pixels = np.ascontiguousarray(pixels, dtype=np.uint8)
-    if path.lower().endswith(".pgm"):
-        if pixels.ndim != 2:
-            raise InvalidOptionError("a PGM image is grey only")
-        return b"P5\n%d %d\n255\n" % (pixels.shape[1], pixels.shape[0]) + pixels.tobytes()
-    return _png_bytes(pixels)
-
-
-def _png_bytes(pixels):
-    height, width = pixels.shape[:2]
-    channels = 1 if pixels.ndim == 2 else pixels.shape[2]
-    colour = {1: 0, 2: 4, 3: 2, 4: 6}[channels]
-    rows = pixels.reshape(height, width * channels)
-    raw = np.hstack([np.zeros((height, 1), np.uint8), rows]).tobytes()
-
-    def chunk(kind, body):
-        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, colour, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
+    pgm = path.lower().endswith(".pgm")
+    if pgm and pixels.ndim != 2:
+        raise InvalidOptionError("a PGM image is grey only")
+    if not (pixels.ndim == 2 or pixels.ndim == 3 and pixels.shape[2] in (2, 3, 4)):
+        raise InvalidOptionError(f"an image is (rows, cols) or (rows, cols, 2|3|4); got shape {pixels.shape}")
+    out = io_bytes()
+    _pillow().fromarray(pixels).save(out, format="PPM" if pgm else "PNG")
+    return out.getvalue()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -81,13 +81,40 @@ def test_pgm_variants(tmp_path):
     assert io.read_image(tmp_path / "b.pgm").tolist() == [[0, 255], [128, 0]]
 
 
+def test_yaml_in_any_style_map_server_reads(tmp_path):
+    """Block sequences, flow mappings, a float without a dot (yaml-cpp reads 1e-1 as a number)."""
+    io.write_image(str(tmp_path / "m.pgm"), np.array([[0, 254]], dtype=np.uint8))
+    texts = ["image: m.pgm\nresolution: 1e-1\norigin:\n  - 1.5\n  - -2\n  - 0.25\nnegate: 0\n",
+             "{image: m.pgm, resolution: 0.1, origin: [1.5, -2, 0.25], mode: trinary}\n",
+             "---\nimage: 'm.pgm'   # quoted\nresolution: 0.1\norigin: [1.5, -2.0, 0.25]\n...\n"]
+    for text in texts:
+        (tmp_path / "m.yaml").write_text(text)
+        g = io.read_ros_map(tmp_path / "m.yaml")
+        assert g.resolution == 0.1 and g.corner_pose == (1.5, -2.0, 0.25)
+        assert g.prob.tolist() == [[1.0, 0.0]]
+
+
+def test_png_variants_pillow_writes(tmp_path):
+    """16-bit grey, a palette with a transparent entry, 1-bit: read as map_server's SDL_image would."""
+    from PIL import Image
+
+    Image.fromarray(np.array([[0, 65535, 32896]], dtype=np.uint16)).save(tmp_path / "g16.png")
+    assert io.read_image(tmp_path / "g16.png").tolist() == [[0, 255, 128]]
+    palette = Image.fromarray(np.array([[0, 1, 2]], dtype=np.uint8), "P")
+    palette.putpalette([0, 0, 0, 255, 255, 255, 205, 205, 205])
+    palette.save(tmp_path / "p.png", transparency=2)
+    assert io.read_image(tmp_path / "p.png").tolist() == [[[0, 0, 0, 255], [255, 255, 255, 255], [205, 205, 205, 0]]]
+    Image.fromarray(np.array([[True, False]])).save(tmp_path / "b.png")
+    assert io.read_image(tmp_path / "b.png").tolist() == [[255, 0]]
+
+
 @pytest.mark.parametrize("text, match", [
     ("resolution: 0.05\norigin: [0, 0, 0]\n", "'image' is missing"),
     ("image: m.pgm\norigin: [0, 0, 0]\n", "'resolution' is missing"),
     ("image: m.pgm\nresolution: fast\norigin: [0, 0, 0]\n", "'resolution' must be a number"),
     ("image: m.pgm\nresolution: -1\norigin: [0, 0, 0]\n", "out of range"),
     ("image: m.pgm\nresolution: 0.1\norigin: [0, zero, 0]\n", "'origin' must be"),
-    ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0\n", "unbalanced"),
+    ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0\n", "not valid YAML"),
     ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0]\nmode: fancy\n", "'mode' must be"),
     ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0]\nfree_thresh: 0.9\n", "free_thresh"),
     ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0]\nnegate: 2\n", "'negate'"),
@@ -116,7 +143,7 @@ def test_missing_and_corrupt_files(tmp_path):
     with pytest.raises(MapFormatError):
         io.read_image(tmp_path / "c.png")
     (tmp_path / "x.pgm").write_bytes(b"GIF89a")
-    with pytest.raises(MapFormatError, match="not a PGM"):
+    with pytest.raises(MapFormatError, match="not an image"):
         io.read_image(tmp_path / "x.pgm")
     assert issubclass(MapFileError, OSError) and issubclass(MapFormatError, ValueError)
 
