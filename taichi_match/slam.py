@@ -137,9 +137,9 @@ class SlamOptions:
     target_refresh : the front end's target (the older open submap) is cast and prepared again
         after this many scans, and whenever it changes or the graph was optimised: 1 casts it
         for every scan (with the scan before it); ``submap_scans // 2`` or more casts it once
-        per submap, when it becomes the target: 1.4-2.2 times faster on the real logs, median
-        ATE lower on seven of nine, but orebro's 0.24 -> 0.34 m and one aces run in five
-        derailed (bench/SLAM_target_refresh5.md against bench/SLAM.md).
+        per submap, when it becomes the target: faster, median ATE over five runs per log lower
+        on five of nine (fhw 0.156 -> 0.101 m) but orebro's 0.119 -> 0.269 and edmonton's
+        0.147 -> 0.211 (bench/SLAM_target_refresh5.md against bench/SLAM.md, 2026-12-03).
     max_ray_length : beams are cut there (metres) in submaps and scans.
     odometry_sd : (metres per metre travelled, radians per radian turned, radians per metre,
         metres floor, radians floor): the standard deviations of an odometry step's translation
