@@ -304,9 +304,9 @@ def main():
     for width, share, known, ms in shares:
         emit(f"| {width:g} | {share:.2f} | {known} | {ms:.1f} |")
     try:
-        from taichi_match.plots import _plt
-        plt = _plt()
-        fig, ax = plt.subplots(figsize=(6, 4))
+        from taichi_match.plots import _figure
+        fig = _figure(figsize=(6, 4))
+        ax = fig.subplots()
         ax.loglog([s[1] for s in sizes], [s[2] for s in sizes], "o-", label="map size (120^2 .. 1920^2)")
         ax.loglog([s[2] for s in shares], [s[3] for s in shares], "s-", label="known share (480^2)")
         ax.set_xlabel("known cells")
@@ -314,7 +314,6 @@ def main():
         ax.legend()
         fig.tight_layout()
         fig.savefig(HERE / "scaling.png", dpi=90)
-        plt.close(fig)
         emit()
         emit("![scaling](scaling.png)")
     except ImportError:

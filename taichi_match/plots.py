@@ -13,14 +13,14 @@ __all__ = ["map_rgba", "draw_map", "draw_overlay", "check_picture_path", "save_o
 UNKNOWN_RGB = (0.72, 0.82, 0.97)       # the paper draws unknown cells in blue
 
 
-def _plt():
+def _figure(**kwargs):
+    """A ``matplotlib.figure.Figure`` made without pyplot: no backend chosen, no global figure
+    registry, nothing to close; ``Figure.savefig`` picks the writer by the file's extension."""
     try:
-        import matplotlib
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
     except ImportError as exc:       # pragma: no cover - depends on the environment
         raise ImportError("pictures need matplotlib: pip install 'taichi-match[plots]'") from exc
-    return plt
+    return Figure(**kwargs)
 
 
 def map_rgba(grid: GridMap, *, tint=None, alpha_free=1.0, alpha_occupied=1.0, stretch=False):
@@ -98,8 +98,8 @@ def save_overlay(path, a: GridMap, b: GridMap, initial_pose, result, *, title=""
     """Two panels, as the paper's Figs. 6-9: the initial setting and the final solution, saved to
     ``path``, whose extension (.png, .pdf, .svg) says the format."""
     check_picture_path(path)
-    plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2))
+    fig = _figure(figsize=(11, 5.2))
+    axes = fig.subplots(1, 2)
     x, y, t = initial_pose
     draw_overlay(axes[0], a, b, initial_pose, title=f"initial  x={x:.2f} y={y:.2f} theta={t:.3f}")
     x, y, t = result.pose
@@ -109,13 +109,11 @@ def save_overlay(path, a: GridMap, b: GridMap, initial_pose, result, *, title=""
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def save_surface(path, xs, ys, z, *, title="", zlabel="e"):
     """A 3-D surface as the paper's Figs. 2, 4 and 5."""
-    plt = _plt()
-    fig = plt.figure(figsize=(7.5, 5.5))
+    fig = _figure(figsize=(7.5, 5.5))
     ax = fig.add_subplot(projection="3d")
     gx, gy = np.meshgrid(xs, ys)
     ax.plot_surface(gx, gy, z, cmap="viridis", linewidth=0, antialiased=True, rcount=len(ys), ccount=len(xs))
@@ -126,13 +124,12 @@ def save_surface(path, xs, ys, z, *, title="", zlabel="e"):
     ax.set_title(title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def save_maps(path, raw: GridMap, blurred: GridMap, *, title=""):
     """The paper's Fig. 3: a map and its blurred version side by side."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    fig = _figure(figsize=(10, 5))
+    axes = fig.subplots(1, 2)
     peak = np.nanmax(blurred.prob) if np.any(~np.isnan(blurred.prob)) else 1.0
     for ax, grid, label, stretch in ((axes[0], raw, "original", False),
                                      (axes[1], blurred, f"blurred (grey stretched: black = {peak:.2f})", True)):
@@ -145,15 +142,14 @@ def save_maps(path, raw: GridMap, blurred: GridMap, *, title=""):
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def save_merge(path, a: GridMap, b: GridMap, merged: GridMap, *, title=""):
     """Three panels: A, B (each in its own frame) and ``merged`` (``merge.merge_maps``, frame A),
     saved to ``path`` (.png, .pdf or .svg)."""
     check_picture_path(path)
-    plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2))
+    fig = _figure(figsize=(15, 5.2))
+    axes = fig.subplots(1, 3)
     for ax, grid, label in ((axes[0], a, "A"), (axes[1], b, "B"), (axes[2], merged, "B merged into A")):
         draw_map(ax, grid)
         x0, x1, y0, y1 = grid.extent
@@ -165,7 +161,6 @@ def save_merge(path, a: GridMap, b: GridMap, merged: GridMap, *, title=""):
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def save_trajectories(path, grid: GridMap, trajectories, *, title=""):
@@ -174,8 +169,8 @@ def save_trajectories(path, grid: GridMap, trajectories, *, title=""):
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext not in (".png", ".pdf", ".svg") or os.path.isdir(path):
         raise InvalidOptionError(f"the picture must be a .png, .pdf or .svg file; got {os.fspath(path)!r}")
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(8, 8))
+    fig = _figure(figsize=(8, 8))
+    ax = fig.subplots()
     x0, y0 = grid.origin
     h, w = grid.shape
     ax.imshow(np.nan_to_num(1.0 - grid.prob, nan=0.8), cmap="gray", vmin=0, vmax=1, origin="lower",
@@ -188,4 +183,3 @@ def save_trajectories(path, grid: GridMap, trajectories, *, title=""):
     ax.set_ylabel("y (m)")
     ax.legend(loc="best", fontsize=8)
     fig.savefig(path, dpi=90, bbox_inches="tight")
-    plt.close(fig)
