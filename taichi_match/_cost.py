@@ -12,7 +12,7 @@ from ._grid import GridMap
 from ._kernels import PAD
 
 __all__ = [
-    "affine_coefficients", "AffineMap", "prior", "prior_terms", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
+    "AffineMap", "prior", "prior_terms", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
     "hessian_stencil", "hessian_from_stencil",
 ]
 
@@ -20,22 +20,17 @@ __all__ = [
 # Eq. (5): f(c_B) = lambda_A^-1(T(r_AB) lambda_B(c_B)), as affine coefficients per pose.
 
 
-def affine_coefficients(poses, a: GridMap, b: GridMap, pad=PAD):
-    """(N, 6) coefficients mapping B's cell (i, j) to A's (padded) cell coordinates.
+class AffineMap:
+    """Eq. (5) for one pair of maps: per pose, the (N, 6) coefficients mapping B's cell (i, j) to
+    A's (padded) cell coordinates.
 
     ``u = c0*j + c1*i + c2`` is A's column and ``v = c3*j + c4*i + c5`` A's row, both offset by
     ``pad`` for A's ring of unknown cells; the cell is (floor(v), floor(u)). B's cells are taken
     at their centres (eq. 2), placed in B's frame by B's corner pose, moved into A's frame by the
     pose (eq. 4), and into A's grid by the inverse of A's corner pose and resolution (eq. 3).
-    """
-    return AffineMap(a, b, pad)(poses)
-
-
-class AffineMap:
-    """``affine_coefficients`` for one pair of maps, with the pair's constants computed once.
-
     The coefficients are linear in (cos theta, sin theta, x, y, 1), so a batch is one product with
-    a 5 x 6 matrix (a few NumPy calls instead of thirty: this runs before every launch).
+    a 5 x 6 matrix made once per pair (a few NumPy calls instead of thirty: this runs before every
+    launch).
     """
 
     def __init__(self, a: GridMap, b: GridMap, pad=PAD, b_pad=0):

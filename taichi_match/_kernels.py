@@ -15,7 +15,7 @@ The kernels know nothing but arrays:
   cells its index i and the column range [lo, hi) that holds them.
 - ``affine``: (N, 6) float64, per pose the map from B's cell indices to A's padded cell
   coordinates: ``u = c0*j + c1*i + c2`` (column) and ``v = c3*j + c4*i + c5`` (row); A's cell is
-  (floor(v), floor(u)). ``_cost.affine_coefficients`` builds it from eq. (2)-(5).
+  (floor(v), floor(u)). ``_cost.AffineMap`` builds it from eq. (2)-(5).
 
 Output is one partial sum (and optionally a count, or bilinear's gradient sums) per (pose, row),
 written without atomics so the result is bit-identical run after run; the caller adds the rows
