@@ -86,9 +86,11 @@ def _build(ti):
             h, w = out.shape[0], out.shape[1]
             reach = (half.shape[0] - 1) // 2
             for i in range(h):
-                start = ti.cast(0.0, dt) if ti.static(weighted) else ti.cast(beyond[0], dt)
                 for j in range(w):
-                    out[i, j] = start
+                    if ti.static(weighted):
+                        out[i, j] = 0.0
+                    else:
+                        out[i, j] = ti.cast(beyond[0], dt)
                 for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
                     di = rows_[k] - i
                     dy2 = di * di
