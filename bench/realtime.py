@@ -33,7 +33,9 @@ import numpy as np
 import taichi_match as tm
 from taichi_match.reproduce import git_revision
 from taichi_match._cost import AffineMap, hessian_stencil
-from taichi_match._kernels import _LOCK, _import_taichi, _launch, ensure_initialized
+from taichi_match._kernels import dense_kernels
+from taichi_match._launch import launch as _launch
+from taichi_match._taichi import kernel_lock, taichi
 from taichi_match.scenes import corridor, noisy_copy
 
 HERE = Path(__file__).resolve().parent
@@ -99,8 +101,8 @@ def real_map_figures(pairs_per_map, seed=0, matcher=None):
 def kernel_figures(repeats=101):
     """ns per cell-pose of the general kernel (13 and 25 poses), of the stencil kernel (the 25
     Hessian-stencil poses), and of a gather-only kernel over the same 25 poses."""
-    ti = _import_taichi()
-    kernels = ensure_initialized()
+    ti = taichi()
+    kernels = dense_kernels()
     prepared = tm.Matcher().prepare(corridor())
 
     @ti.kernel
@@ -135,7 +137,7 @@ def kernel_figures(repeats=101):
         fn()                                      # warm-up (and compile)
         return median_time(fn, repeats)
 
-    with _LOCK:
+    with kernel_lock():
         t13 = timed(lambda: _launch(kernels.poses, (*arrays, a13, out13), 0))
         t25 = timed(lambda: _launch(kernels.poses, (*arrays, a25, out25), 0))
         t_stencil = timed(lambda: _launch(kernels.stencil, (*arrays, a5, out25), 0))

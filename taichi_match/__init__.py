@@ -11,11 +11,14 @@ take the covariance from the numeric Hessian of e. Conventions are stated once i
 import logging
 
 
-from ._bfgs import Status
+from ._status import Status
 from ._errors import (EngineError, InvalidMapError, InvalidOptionError, InvalidPoseError, LogFileError,
                       LogFormatError, MapFileError, MapFormatError, TaichiMatchError)
 from ._grid import GridMap
-from ._matcher import CALIBRATED_COVARIANCE_SCALE, Matcher, MatchOptions, MatchResult, match
+from ._covariance import CALIBRATED_COVARIANCE_SCALE
+from ._matcher import Matcher, match
+from ._options import MatchOptions
+from ._result import MatchResult
 from ._prepared import PreparedMap, make_engine
 from ._search import Hypothesis
 from ._se2 import as_poses, compose, inverse, transform_points, wrap_angle

@@ -21,40 +21,13 @@ floor while the stencil gradient is dominated by the kink across it, and BFGS th
 each launch tries the six axis directions at three step lengths at once.
 """
 
-import enum
 from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Status", "BfgsResult", "minimize_bfgs", "polish"]
+from ._status import Status
 
-
-class Status(enum.IntEnum):
-    GRADIENT = 0
-    STEP = 1
-    NO_DESCENT = 2
-    MAX_ITERATIONS = 3
-    NO_OVERLAP = 4
-    SEPARATED = 5
-    NO_INFORMATION = 6
-
-    @property
-    def converged(self):
-        return self in (Status.GRADIENT, Status.STEP, Status.NO_DESCENT)
-
-
-MESSAGES = {
-    Status.GRADIENT: "converged: gradient below tolerance",
-    Status.STEP: "converged: step below tolerance",
-    Status.NO_DESCENT: "converged: no descent at the resolution of the cost (a kink or a cell boundary)",
-    Status.MAX_ITERATIONS: "not converged: maximum number of iterations reached",
-    Status.NO_OVERLAP: "not matched: the maps do not overlap at the initial pose (no known cell of B "
-                       "falls on a known cell of A)",
-    Status.SEPARATED: "not matched: the minimum found has no overlap; B was pushed off A, so near the "
-                      "initial pose no overlapping placement is free of conflicts (check the maps and r0)",
-    Status.NO_INFORMATION: "not matched: the discrepancy is flat in every direction here (no structure "
-                           "in the overlap), so the maps say nothing about the pose",
-}
+__all__ = ["BfgsResult", "minimize_bfgs", "polish"]
 
 
 @dataclass

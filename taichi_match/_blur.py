@@ -39,7 +39,6 @@ The measurements behind the default are in ``bench/TUNING.md``.
 from typing import Literal
 
 import numpy as np
-from scipy import fft, ndimage
 
 from ._distance import squared_distance, wall_distance
 from ._errors import InvalidOptionError
@@ -63,6 +62,8 @@ def gaussian_filter(stack, sigma):
     # million cells costs no more than one as wide as the map
     radius = int(min(_TRUNCATE * sigma + 0.5, max(stack.shape[1:])))
     if 2 * radius + 1 < _FFT_MIN_TAPS:
+        from scipy import ndimage          # SciPy is imported where used: `taichi-match --help` answers fast
+
         return np.stack([ndimage.gaussian_filter(a, sigma, mode="constant", truncate=_TRUNCATE) for a in stack])
     taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
     taps /= taps.sum()
@@ -73,6 +74,8 @@ def _convolve_same(x, taps, axis):
     """Linear convolution of ``x`` with the odd-length ``taps`` along ``axis`` by FFT, zeros
     outside, cropped to x's size (centred, as ``mode="same"``). scipy.fft, not scipy.signal, whose
     import alone takes about 0.4 s."""
+    from scipy import fft
+
     size = x.shape[axis]
     n = fft.next_fast_len(size + len(taps) - 1, real=True)
     spectrum = fft.rfft(x, n, axis=axis) * np.expand_dims(fft.rfft(taps, n), tuple(range(1, x.ndim - axis)))
@@ -96,6 +99,8 @@ def wall_transform(grid: GridMap, occupied: float = 0.5):
         return None
     if p[occ].min() == 1.0:
         return wall_distance(occ), None
+    from scipy import ndimage
+
     return ndimage.distance_transform_edt(~occ, return_indices=True)
 
 

@@ -1,5 +1,5 @@
-"""The cost as the optimiser sees it: eq. (5) as an affine index map, eq. (7)-(8), and the
-finite-difference stencils of eq. (10)-(12).
+"""The cost as the optimiser sees it: eq. (5) as an affine index map, eq. (7)-(8), the
+finite-difference stencils of eq. (10)-(12), and h on one pyramid level (``LevelCost``).
 
 Pose components are ordered (x, y, theta); ``steps = (eps_x, eps_y, eps_theta)`` in metres and
 radians. All stencil poses a step needs are returned as one (N, 3) batch so that one kernel launch
@@ -8,12 +8,13 @@ evaluates them.
 
 import numpy as np
 
+from ._covariance import centroid_metric
 from ._grid import GridMap
 from ._kernels import PAD
 
 __all__ = [
     "AffineMap", "prior", "prior_terms", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
-    "hessian_stencil", "hessian_from_stencil",
+    "hessian_stencil", "hessian_from_stencil", "Counter", "LevelCost",
 ]
 
 # ---------------------------------------------------------------------------------------------
@@ -201,3 +202,131 @@ def hessian_from_stencil(values, steps):
     values = np.asarray(values, dtype=np.float64)
     return (_HESS_WEIGHTS @ values).reshape(3, 3) / np.outer(steps, steps)
 
+
+# ---------------------------------------------------------------------------------------------
+# h (eq. 8) on one pyramid level, in the coordinates the optimisers work in.
+
+
+class Counter:
+    """Kernel launches and poses evaluated during one match."""
+
+    def __init__(self):
+        self.launches = 0
+        self.poses = 0
+
+
+class LevelCost:
+    """h (eq. 8) on one level of the pyramid, as the optimisers see it.
+
+    Poses r are (x, y, theta); the optimisers work in z = M r, all in metres (see ``__init__``),
+    so that a unit step moves a typical cell of B by about a metre whichever way it goes. K follows
+    the number of B's known cells at this level.
+    With ``interpolation="nearest"`` (the paper's e) derivatives come from the stencils of
+    eq. (10)-(12); with "bilinear" the gradient is analytic (one pose) and the Hessian is the
+    central difference of gradients at +-1 step on each axis (7 poses).
+    """
+
+    def __init__(self, engine, pa, pb, prep_b, opts, r0, full_weight, counter):
+        """``engine`` evaluates e between the level's maps ``pa`` and ``pb`` (``make_engine``);
+        ``prep_b`` is B as given, ``full_weight`` the K of eq. (8) there, ``counter`` a ``Counter``."""
+        self._engine = engine
+        self._bilinear = opts.interpolation == "bilinear"
+        self._counter = counter
+        self._r0 = r0
+        self._rotation_scale = opts.rotation_scale
+        self.steps = opts.steps(pa.resolution, prep_b.radius)
+        self.weight = full_weight * pb.n_known / max(prep_b.n_known, 1)
+        # z = M r: B's centroid's position in A and theta times B's rms radius about its centroid,
+        # linearised at r0's theta. A unit step in z then moves a typical cell of B by about a
+        # metre whichever way, also when B's frame origin lies far from its cells (ROS maps put it
+        # at a corner, tens of metres away): there a rotation about the origin is mostly a
+        # translation, and a trust region in (x, y, theta * radius) crawled along the valley of
+        # rotations about the map's own centre (a self-match from 0.02 rad stopped 0.4 deg off).
+        self._to_z = centroid_metric(prep_b.centroid, prep_b.spread, r0[2])
+        self._from_z = np.linalg.inv(self._to_z)
+        # the stencils' steps in z: one cell of A along x and y, and a rotation about B's centroid
+        # that moves a typical cell of B by one cell (the derivatives of e then come in z directly;
+        # taken about B's frame origin they hid the rotation about B's centre in the rounding of
+        # far larger terms)
+        self.z_steps = np.array([self.steps[0], self.steps[1],
+                                 self.steps[0] if opts.rotation_step is None else opts.rotation_step * prep_b.spread])
+        self.max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * self.steps[0])
+
+    @property
+    def counts_free(self):
+        """Whether the engine counts the overlap in the same launch as e."""
+        return self._engine.counts_free
+
+    def to_z(self, r):
+        """The optimiser's coordinates z = M r of a pose r."""
+        return self._to_z @ np.asarray(r, dtype=np.float64)
+
+    def to_r(self, z):
+        """The pose r of the optimiser's coordinates z."""
+        return self._from_z @ np.asarray(z, dtype=np.float64)
+
+    def grad_z(self, grad_r):
+        """A gradient in r as a gradient in z."""
+        return self._from_z.T @ grad_r
+
+    def _count(self, poses, count="none"):
+        self._counter.launches += 1 if count in ("none", "any") or self.counts_free else 2
+        self._counter.poses += poses
+
+    def overlap(self, r):
+        """The overlap at r (one launch)."""
+        self._count(1)
+        return int(self._engine.overlap(np.asarray(r, dtype=np.float64)[None, :])[0])
+
+    def evaluate(self, poses, count="first"):
+        """e and the overlap (see ``make_engine`` for ``count``) for a batch of poses: one launch."""
+        self._count(len(poses), count)
+        if self._bilinear:
+            return self._engine.bilinear(poses)[:2]
+        return self._engine(poses, count)
+
+    def value_and_gradient(self, r, count="none"):
+        """h and its gradient in r at r: the 13-pose stencil (eq. 10) in z, or one pose (bilinear)."""
+        if self._bilinear:
+            self._count(1)
+            values, counts, grads = self._engine.bilinear(r[None, :])
+            grad = grads[0]
+        else:
+            values, counts = self.evaluate(gradient_stencil(r, self.z_steps, self._from_z), count)
+            grad = self._to_z.T @ gradient_from_stencil(values, self.z_steps)
+        p_val, p_grad = prior(r, self._r0, self.weight, self._rotation_scale)
+        return values[0] + p_val, grad + p_grad, counts
+
+    def value_gradient_hessian(self, z, count="none"):
+        """h, its gradient and Hessian in z (the prior's included), from one launch; extra:
+        (e, overlap or None, Hessian of e in r) at z."""
+        r = self.to_r(z)
+        if self._bilinear:
+            self._count(7)
+            poses = r + np.vstack([np.zeros(3), np.diag(self.steps), -np.diag(self.steps)])
+            values, counts, grads = self._engine.bilinear(poses)
+            hess = (grads[1:4] - grads[4:7]).T / (2.0 * self.steps)      # column q: d grad / d r_q
+            hess = 0.5 * (hess + hess.T)
+            grad_z, hess_z = self.grad_z(grads[0]), self._from_z.T @ hess @ self._from_z
+        else:
+            self._count(25, count)
+            spared = getattr(self._engine, "dense_launches", 0)        # count="any": a launch only if needed
+            values, counts = self._engine.hessian_stencil(r, self.z_steps, count, basis=self._from_z)
+            self._counter.launches += getattr(self._engine, "dense_launches", 0) - spared
+            grad_z, hess_z = gradient_from_stencil(values, self.z_steps), hessian_from_stencil(values, self.z_steps)
+            hess = self._to_z.T @ hess_z @ self._to_z                      # eq. (12) in r
+        p_val, p_grad, h_prior = prior_terms(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
+        extra = (values[0], None if counts is None else counts[0], hess)
+        return (values[0] + p_val, grad_z + self.grad_z(p_grad),
+                hess_z + self._from_z.T @ h_prior @ self._from_z, extra)
+
+    def fun_grad(self, z):
+        """h and its gradient in z (for BFGS)."""
+        h, grad, _ = self.value_and_gradient(self.to_r(z))
+        return h, self.grad_z(grad)
+
+    def batch(self, zs):
+        """h at a batch of points z, one launch (for the compass search)."""
+        rs = zs @ self._from_z.T
+        e_values, _ = self.evaluate(rs, count="none")
+        return e_values + prior_values(rs, self._r0, self.weight, self._rotation_scale)

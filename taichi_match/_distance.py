@@ -20,7 +20,8 @@ whatever the order of the parallel writes.
 
 import numpy as np
 
-from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
+from ._launch import launch
+from ._taichi import kernel_lock, kernels, taichi
 
 __all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "far"]
 
@@ -29,7 +30,6 @@ def far(squared: np.ndarray) -> int:
     """``near_squared_distance``'s value where no wall is within reach: its dtype's largest."""
     return int(np.iinfo(squared.dtype).max)
 
-_KERNELS = {}
 
 
 def _build(ti):
@@ -142,29 +142,22 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
     h, w = f.shape
     d = np.empty((h, w))
     with kernel_lock():
-        rows = _built()[0]
+        rows = kernels(_build)[0]
         # down the columns as rows of the transpose: both passes read memory in order
         f_t = _SCRATCH.get("f_t", (w, h), np.float64)
         f_t[...] = f.T
         g_t = _SCRATCH.get("g_t", (w, h), np.float64)
-        _launch(rows, (f_t, g_t, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64)), None)
+        launch(rows, (f_t, g_t, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64)), None)
         g = _SCRATCH.get("f_t", (h, w), np.float64)            # f_t is spent
         g[...] = g_t.T
-        _launch(rows, (g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64)), None)
+        launch(rows, (g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64)), None)
     return d
 
 
-_TAICHI_TYPES = {}      # NumPy dtype name -> Taichi's, filled when the kernels are built
-
-
-def _built():
-    """The kernels (built once, Taichi initialised and the kernel lock held)."""
-    ensure_initialized()
-    if "kernels" not in _KERNELS:
-        ti = _STATE["ti"]
-        _KERNELS["kernels"] = _build(ti)
-        _TAICHI_TYPES.update(uint8=ti.u8, uint16=ti.u16, uint32=ti.u32, float64=ti.f64)
-    return _KERNELS["kernels"]
+def _taichi_type(dtype):
+    """Taichi's type for a NumPy dtype of the stamps."""
+    ti = taichi()
+    return {"uint8": ti.u8, "uint16": ti.u16, "uint32": ti.u32, "float64": ti.f64}[np.dtype(dtype).name]
 
 
 def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
@@ -194,8 +187,8 @@ def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
         weights = weights[order]
     out = np.empty(shape, dtype=dtype) if out is None else out
     with kernel_lock():
-        _launch(_built()[kernel], (rows, cols, weights, np.ascontiguousarray(profile, dtype=np.float64),
-                                              first, half, beyond, out), _TAICHI_TYPES[np.dtype(dtype).name])
+        launch(kernels(_build)[kernel], (rows, cols, weights, np.ascontiguousarray(profile, dtype=np.float64),
+                                              first, half, beyond, out), _taichi_type(dtype))
     return out
 
 

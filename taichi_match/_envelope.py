@@ -46,7 +46,9 @@ import numpy as np
 from ._cost import AffineMap, pose_feature_pair
 from ._distance import near_weighted_envelope
 from ._grid import GridMap, cells
-from ._kernels import _STATE, PAD, Launcher, _launch, ensure_initialized, kernel_lock
+from ._kernels import PAD
+from ._launch import Launcher, launch
+from ._taichi import kernel_lock, kernels
 from ._se2 import as_poses, inverse, transform_points
 
 __all__ = ["conflict_grid", "envelope_reach", "envelope_profile", "near_conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
@@ -58,7 +60,6 @@ CHUNK = 256
 # The sums are the same either way (one per chunk, each summed in order).
 SERIAL_BELOW = 100_000
 _OFF_MAP = np.float32(-4.0)
-_KERNEL = {}
 
 
 def conflict_grid(hi: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -108,13 +109,10 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, *, s
     out = np.empty((h + 2 * PAD, w + 2 * PAD), dtype=np.float32)
     profile = envelope_profile(reach, ratio)
     with kernel_lock():                     # held while the scratch buffer is in use
-        ensure_initialized()
-        if "conflict" not in _KERNEL:
-            _KERNEL["conflict"] = _build_conflict(_STATE["ti"])
         if walls is not None:
             squared = near_weighted_envelope(*walls, (h, w), reach, profile[:-1], scratch=True)
         p = np.zeros((0, 0)) if prob is None else np.ascontiguousarray(prob, dtype=np.float64)
-        _launch(_KERNEL["conflict"], (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8),
+        launch(kernels(_build_conflict), (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8),
                                       profile, out), (prob is not None, walls is None))
     return out
 
@@ -208,13 +206,7 @@ def _build(ti):
 
 
 def _kernel():
-    ensure_initialized()
-    from ._kernels import _STATE
-
-    ti = _STATE["ti"]
-    if "kernel" not in _KERNEL:
-        _KERNEL["kernel"] = _build(ti)
-    return _KERNEL["kernel"]
+    return kernels(_build)
 
 
 class EnvelopeEngine:

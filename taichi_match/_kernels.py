@@ -20,141 +20,21 @@ The kernels know nothing but arrays:
 Output is one partial sum (and optionally a count, or bilinear's gradient sums) per (pose, row),
 written without atomics so the result is bit-identical run after run; the caller adds the rows
 in float64. Each row is summed in float32 (at most a few thousand terms of size <= 1).
-After a kernel's first call, ``_launch`` passes the arrays straight to Taichi's launch context;
-a ``Launcher`` keeps one context per batch shape and relaunches it.
-
-Taichi is imported and initialised lazily, on the first evaluation: CPU backend, all allowed cores
-(its worker threads pinned one per core, see ``_pin_threads``), no banner, no network version
-check. A host that already called ``ti.init`` keeps its runtime, threads untouched.
-Calls are serialised with a lock (Taichi is not thread-safe), and a process forked after Taichi
-was initialised gets an error instead of the hang Taichi would give.
+They are launched through ``_launch``; Taichi itself is started by ``_taichi``.
 """
 
-import contextlib
-import io
-import os
-import sys
-import threading
 import typing
-import warnings
 
 import numpy as np
 
-from ._errors import EngineError
+from ._launch import Launcher
+from ._taichi import kernels
 
-__all__ = ["TaichiEngine", "Launcher", "ensure_initialized", "kernel_lock", "check_not_forked", "set_threads", "Kernels",
-           "PAD"]
+__all__ = ["TaichiEngine", "Kernels", "dense_kernels", "PAD", "COUNT_MODES"]
 
 # Width of the ring of unknown cells around A: lookups are clamped two cells inside the padded
 # grid and then shifted by up to two cells, so any lookup that leaves A must land on the ring.
 PAD = 5
-
-_LOCK = threading.RLock()
-_STATE = {"ti": None, "kernel": None, "forked": False, "threads": None}
-
-
-def set_threads(threads):
-    """The number of CPU threads Taichi gets when taichi_match starts it (None: one per allowed
-    CPU, pinned one to a CPU). For a process that shares the machine with others doing the same
-    (workers of a pool, one per core): 1. No effect once Taichi runs."""
-    _STATE["threads"] = threads
-
-
-def _after_fork_in_child():
-    """Remember that this process was forked while Taichi (ours or the host's) was running, or
-    while another thread held the kernel lock (it would never be released here)."""
-    stuck = not _LOCK.acquire(blocking=False)
-    if not stuck:
-        _LOCK.release()
-    ti = sys.modules.get("taichi")
-    try:
-        running = ti is not None and ti.lang.impl.get_runtime().prog is not None
-    except Exception:  # pragma: no cover - a half-imported taichi
-        running = True
-    if running or stuck:
-        _STATE["forked"] = True
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_after_fork_in_child)
-
-
-def _import_taichi():
-    if _STATE["ti"] is None:
-        os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
-        os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
-        os.environ.setdefault("TI_ENABLE_PYBUF", "0")      # else a wrapped stdout adds a print per launch
-        with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)   # taichi 1.7 uses deprecated stdlib calls
-            import taichi as ti
-        _STATE["ti"] = ti
-    return _STATE["ti"]
-
-
-def kernel_lock():
-    """The lock that serialises every Taichi call (``check_not_forked`` first)."""
-    check_not_forked()
-    return _LOCK
-
-
-def check_not_forked():
-    """Raise ``EngineError`` in a process forked after Taichi started. Called before any lock is
-    taken: another thread of the parent may have held it at the fork, and in the child nobody
-    would ever release it."""
-    if _STATE["forked"]:
-        raise EngineError(
-            "Taichi was initialised in a parent process before this one was forked; Taichi kernels "
-            "hang in a forked child. Start worker processes with the 'spawn' or 'forkserver' method "
-            "(multiprocessing.get_context('spawn')), or use the engine only in the children.")
-
-
-def ensure_initialized():
-    """Initialise Taichi on the CPU once (or adopt the host's runtime) and build the kernels."""
-    with kernel_lock():
-        ti = _import_taichi()
-        runtime = ti.lang.impl.get_runtime()
-        if runtime.prog is None:
-            before = _thread_ids()
-            with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
-                warnings.simplefilter("ignore", DeprecationWarning)
-                ti.init(arch=ti.cpu, cpu_max_num_threads=_STATE["threads"] or len(_allowed_cpus()),
-                        offline_cache=True, log_level=ti.WARN)
-            if _STATE["threads"] is None and os.environ.get("TAICHI_MATCH_PIN_THREADS", "1") != "0":
-                _pin_threads(sorted(_thread_ids() - before))
-        if _STATE["kernel"] is None:
-            _STATE["kernel"] = _build_kernel(ti)
-        return _STATE["kernel"]
-
-
-def _allowed_cpus():
-    try:
-        return sorted(os.sched_getaffinity(0))
-    except (AttributeError, OSError):              # not Linux
-        return list(range(os.cpu_count() or 1))
-
-
-def _thread_ids():
-    try:
-        return {int(t) for t in os.listdir(f"/proc/{os.getpid()}/task")}
-    except OSError:
-        return set()
-
-
-def _pin_threads(thread_ids):
-    """Pin the threads Taichi started, one per allowed CPU in turn (Linux only).
-
-    Taichi's CPU thread pool sleeps between launches; on wake-up Linux often puts both workers on
-    the same core, and a launch then takes as long as on one thread (measured on the 2-core
-    machine: median 1.2 ms instead of 0.65 ms for the 13-pose stencil on the paper's corridor).
-    Done only when taichi_match initialises Taichi itself; TAICHI_MATCH_PIN_THREADS=0 turns it off.
-    """
-    cpus = _allowed_cpus()
-    for n, tid in enumerate(thread_ids):
-        try:
-            os.sched_setaffinity(tid, {cpus[n % len(cpus)]})
-        except (AttributeError, OSError):
-            return
-
 
 COUNT_MODES = {"none": 0, "first": 1, "any": 1, "all": 2}   # which poses of a batch get an overlap count
 
@@ -316,132 +196,9 @@ class Kernels(typing.NamedTuple):
     bilinear: object       # bilinear_rows: e, overlap and gradient sums with A interpolated
 
 
-_FAST = {}       # (kernel, count mode, dtypes) -> (program, compiled kernel, compiled data), or None: no fast path
-DIRECT_LAUNCH = True     # False: always Taichi's own call (for benchmarks)
-
-
-def _launch(kernel, arrays, mode):
-    """``kernel(*arrays, mode)`` (``kernel(*arrays)`` if mode is None), through Taichi's launch
-    context directly once compiled.
-
-    Taichi's Python call path checks and converts every argument on every call, about 30 us per
-    launch here, a tenth of a small launch. Our arrays are always C-contiguous with the dtypes
-    the kernels declare, so after the first (ordinary) call with a given ``mode`` we keep the
-    compiled kernel and pass the arrays' addresses and shapes straight to a launch context,
-    which is what Taichi 1.7's ``Kernel.launch_kernel`` does for numpy arrays. The compiled
-    kernel belongs to the Taichi program it was made in: when a host calls ``ti.init`` or
-    ``ti.reset`` again, the next call goes the ordinary way and is kept anew. Should Taichi's
-    internals differ from 1.7's, the ordinary call is used.
-    """
-    prog = _STATE["ti"].lang.impl.get_runtime().prog
-    key = _fast_key(kernel, arrays, mode)
-    fast = _FAST.get(key, False) if DIRECT_LAUNCH else None
-    if fast and fast[0] is prog and all(array.flags.c_contiguous for array in arrays):
-        _, t_kernel, compiled = fast
-        prog.launch_kernel(compiled, _context(t_kernel, arrays))
-        return
-    kernel(*arrays, *_templates(mode))             # (Taichi copies arrays that are not C-contiguous)
-    if fast is False or (fast and fast[0] is not prog):
-        _FAST[key] = _compiled(kernel, arrays, mode)
-
-
-class Launcher:
-    """One kernel and the arguments that stay the same from launch to launch (the maps), with
-    buffers for the others (poses in, sums out) kept per shape, each set in a launch context once.
-
-    ``layout`` lists the kernel's arguments in order: an array where it is fixed, None where a
-    varying input goes; the output comes last. ``run`` copies the inputs into their buffers and
-    relaunches the context as it is, so after the first launch of a shape nothing goes through
-    Taichi's Python layer or ``_launch``'s argument setting (measured: 60-70 us less per launch,
-    a third of a laser submap's launch). Every buffer lives as long as the launcher, so the
-    addresses in a context stay valid; a new Taichi program (``ti.init`` again) gets new contexts.
-    """
-
-    _MAX_SHAPES = 8              # batch shapes kept (the optimisers use two or three)
-
-    def __init__(self, kernel, layout):
-        self._kernel = kernel    # called under the lock: returns the Taichi kernel
-        self._layout = layout
-        self._bound = {}
-
-    def run(self, inputs, out_shape, mode=None):
-        """Launch on ``inputs`` (float64 arrays, in the order of the None slots) and ``mode``;
-        returns the float32 output of ``out_shape``, valid until the next run."""
-        key = (tuple(x.shape for x in inputs), out_shape, mode)
-        with kernel_lock():
-            bound = self._bound.get(key)
-            if bound is None:
-                if len(self._bound) >= self._MAX_SHAPES:
-                    self._bound.clear()
-                buffers = [np.empty(x.shape, dtype=np.float64) for x in inputs]
-                out = np.empty(out_shape, dtype=np.float32)
-                slots = iter(buffers)
-                arrays = tuple(next(slots) if a is None else a for a in self._layout) + (out,)
-                bound = self._bound[key] = (buffers, out, _BoundLaunch(self._kernel(), arrays, mode))
-            buffers, out, launch = bound
-            for buffer, x in zip(buffers, inputs):
-                buffer[...] = x
-            launch()
-        return out
-
-
-class _BoundLaunch:
-    """``kernel(*arrays, mode)`` launched again and again on the same arrays: the first call goes
-    through ``_launch``; from the second on, a launch context with the arrays' addresses, made
-    once, is relaunched (Taichi 1.7's CPU launcher reads the addresses afresh from the context at
-    every launch and changes nothing else in it). A one-off launch costs what ``_launch`` does."""
-
-    def __init__(self, kernel, arrays, mode):
-        if not all(array.flags.c_contiguous for array in arrays):
-            raise ValueError("a bound launch needs C-contiguous arrays")
-        self._kernel, self._arrays, self._mode = kernel, arrays, mode
-        self._prog = self._compiled = self._ctx = None
-        self._calls = 0
-
-    def __call__(self):
-        prog = _STATE["ti"].lang.impl.get_runtime().prog
-        if self._ctx is not None and self._prog is prog and DIRECT_LAUNCH:
-            prog.launch_kernel(self._compiled, self._ctx)
-            return
-        self._calls += 1
-        fast = _FAST.get(_fast_key(self._kernel, self._arrays, self._mode)) if self._calls > 1 else None
-        if fast and fast[0] is prog:
-            self._prog, t_kernel, self._compiled = fast
-            self._ctx = _context(t_kernel, self._arrays)
-            prog.launch_kernel(self._compiled, self._ctx)
-            return
-        _launch(self._kernel, self._arrays, self._mode)
-
-
-def _fast_key(kernel, arrays, mode):
-    """``_FAST``'s key: a kernel with an untyped array argument compiles once per dtype."""
-    return kernel, mode, tuple(array.dtype.num for array in arrays)
-
-
-def _context(t_kernel, arrays):
-    """A launch context of ``t_kernel`` holding the arrays' addresses and shapes."""
-    ctx = t_kernel.make_launch_context()
-    for index, array in enumerate(arrays):
-        ctx.set_arg_external_array_with_shape((index,), array.ctypes.data, array.nbytes, array.shape, 0)
-    return ctx
-
-
-def _templates(mode):
-    """The template arguments after the arrays: ``mode`` (a tuple: several), or none (None)."""
-    return () if mode is None else mode if isinstance(mode, tuple) else (mode,)
-
-
-def _compiled(kernel, arrays, mode):
-    """(program, compiled kernel, compiled data) of ``kernel`` for these arguments, or None."""
-    try:
-        primal = kernel._primal
-        t_kernel = primal.compiled_kernels[primal.ensure_compiled(*arrays, *_templates(mode))]
-        prog = _STATE["ti"].lang.impl.get_runtime().prog
-        compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), t_kernel)
-        t_kernel.make_launch_context()
-        return prog, t_kernel, compiled
-    except Exception:  # pragma: no cover - another Taichi version
-        return None
+def dense_kernels() -> "Kernels":
+    """The kernels of this module, built once (Taichi started first)."""
+    return kernels(_build_kernel)
 
 
 class TaichiEngine:
@@ -494,7 +251,7 @@ class TaichiEngine:
         affine = self._clear_poses_outside(np.ascontiguousarray(affine, dtype=np.float64))
         launcher = self._launchers.get(name)
         if launcher is None:
-            launcher = self._launchers[name] = Launcher(lambda: getattr(ensure_initialized(), name),
+            launcher = self._launchers[name] = Launcher(lambda: getattr(dense_kernels(), name),
                                                         (self._a, self._b, self._rows, None))
         return launcher.run((affine,), planes + (self._rows.shape[0],), mode)
 

@@ -13,7 +13,7 @@ step is followed by one along -g as long as the region: the stencil gradient is 
 +-2 steps, and along it a long step often descends where the model's shorter one met a bump of
 the noisy small-scale surface (measured: noisy-corridor failures 3 / 500 -> 0 / 500).
 
-Stops, with the statuses of ``_bfgs``:
+Stops, with the statuses of ``_status``:
 
 - ``GRADIENT``: the gradient norm is at most ``gtol``;
 - ``STEP``: the model's step is shorter than ``xtol`` (nothing left to gain at this resolution);
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._bfgs import Status
+from ._status import Status
 
 __all__ = ["NewtonResult", "minimize_newton", "trust_region_step"]
 

@@ -6,7 +6,8 @@ import numpy as np
 
 from ._errors import InvalidOptionError
 from ._grid import FREE, OCCUPIED, UNKNOWN, GridMap, _trusted
-from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
+from ._launch import launch
+from ._taichi import kernel_lock, kernels
 
 __all__ = ["coarsen", "halve_code"]
 
@@ -60,7 +61,7 @@ def halve_code(code: np.ndarray, reduce: Literal["mean", "line"] = "line") -> np
     out = np.empty((-(-code.shape[0] // 2), -(-code.shape[1] // 2)))
     if out.size:
         with kernel_lock():
-            _launch(_kernels().halve_code, (code, _BINARY_BLOCKS[reduce], out), None)
+            launch(kernels(_build).halve_code, (code, _BINARY_BLOCKS[reduce], out), None)
     return out
 
 
@@ -73,20 +74,9 @@ def _block_sums(prob, known):
     count = np.empty(total.shape, dtype=np.uint8)
     if total.size:
         with kernel_lock():
-            _launch(_kernels().block_sums, (np.ascontiguousarray(prob), np.ascontiguousarray(known).view(np.uint8),
+            launch(kernels(_build).block_sums, (np.ascontiguousarray(prob), np.ascontiguousarray(known).view(np.uint8),
                                             total, count), None)
     return total, count
-
-
-_KERNELS = {}
-
-
-def _kernels():
-    """The kernels (built once; Taichi initialised)."""
-    ensure_initialized()
-    if "kernels" not in _KERNELS:
-        _KERNELS["kernels"] = _build(_STATE["ti"])
-    return _KERNELS["kernels"]
 
 
 class _Kernels:

@@ -28,7 +28,7 @@ Conventions:
   counts are added with integer atomics, so the result does not depend on the schedule. A beam takes at most |u1 - u0| + |v1 - v0| + 3 steps and stops
   early once it has left the grid for good.
 
-Taichi is initialised lazily by ``_kernels.ensure_initialized`` (which also refuses a forked
+Taichi is initialised lazily by ``_taichi.taichi`` (which also refuses a forked
 child) and launches are serialised with its lock. The kernel is built on first use and kept:
 Taichi keeps a kernel across ``ti.init`` and ``ti.reset`` and compiles it again for the new
 program, as it does for the kernels of ``_kernels``.
@@ -37,7 +37,8 @@ program, as it does for the kernels of ``_kernels``.
 import numpy as np
 
 from ._errors import InvalidOptionError
-from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
+from ._launch import launch
+from ._taichi import kernel_lock, kernels
 
 __all__ = ["count_traversals_taichi"]
 
@@ -45,7 +46,6 @@ __all__ = ["count_traversals_taichi"]
 # and the number of steps of a beam stays bounded.
 MAX_COORDINATE = float(2 ** 28)
 
-_KERNEL = {"traverse": None}
 
 
 def _build_kernel(ti):
@@ -213,9 +213,6 @@ def count_traversals_taichi(segments, hit, shape, scan=None, offset=(0, 0), out=
         raise InvalidOptionError(f"segment coordinates must be finite and at most {MAX_COORDINATE:g} cells")
     own, lo, hi = own_hit_cells(segments, hit, scan, (rows, cols), (row0, col0))
     with kernel_lock():
-        ensure_initialized()
-        if _KERNEL["traverse"] is None:
-            _KERNEL["traverse"] = _build_kernel(_STATE["ti"])
-        _launch(_KERNEL["traverse"], (segments, hit, own, lo, hi, hits, misses, np.array([row0, col0], dtype=np.int32)),
+        launch(kernels(_build_kernel), (segments, hit, own, lo, hi, hits, misses, np.array([row0, col0], dtype=np.int32)),
                 None)
     return hits, misses

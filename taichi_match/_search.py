@@ -49,12 +49,12 @@ import threading
 import weakref
 
 import numpy as np
-from scipy import ndimage
 
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap, cells, trinary
 from ._pyramid import coarsen
-from ._kernels import _STATE, _launch, ensure_initialized, kernel_lock
+from ._launch import launch
+from ._taichi import kernel_lock, kernels
 from ._se2 import wrap_angle
 
 __all__ = ["SearchOptions", "Hypothesis", "SearchResult", "search", "lattice_cells", "score_values", "window_max"]
@@ -130,7 +130,7 @@ def score_values(a: GridMap, blur: float):
     known = ~np.isnan(p)
     walls = p >= 0.5                       # False on unknown (NaN) cells
     if walls.any():
-        d = ndimage.distance_transform_edt(~walls) * a.resolution
+        d = _edt(~walls) * a.resolution
         hi = np.exp(-0.5 * (d / blur) ** 2)
     else:
         hi = np.zeros(p.shape)
@@ -167,7 +167,7 @@ def _points(b: GridMap):
     walls = p >= 0.5
     free = p < 0.5                          # False on unknown cells
     if walls.any():
-        clear = ndimage.distance_transform_edt(~walls) >= CLEAR_CELLS
+        clear = _edt(~walls) >= CLEAR_CELLS
         free &= clear
     return b.cell_centres(*cells(walls)), b.cell_centres(*cells(free))
 
@@ -319,7 +319,7 @@ class _Scorer:
             return self._numpy(self.grids[level], probes, sizes)
         out = np.empty(len(nodes), dtype=np.float64)
         with kernel_lock():
-            _launch(_kernel(), (self.wall_offsets, self.free_offsets, sizes, self.grids[level], self.free_grid,
+            launch(kernels(_build), (self.wall_offsets, self.free_offsets, sizes, self.grids[level], self.free_grid,
                                 probes, out), None)
         return out
 
@@ -333,14 +333,6 @@ class _Scorer:
         return out
 
 
-_KERNEL = {}
-
-
-def _kernel():
-    ensure_initialized()
-    if "score" not in _KERNEL:
-        _KERNEL["score"] = _build(_STATE["ti"])
-    return _KERNEL["score"]
 
 
 def _build(ti):
@@ -548,3 +540,10 @@ def _distinct(lattice, scores, nodes, opts, threshold):
     if len(picked) == HYPOTHESES:
         floor = max(floor, scores[picked[-1]])
     return max(threshold, floor), picked
+
+
+def _edt(mask):
+    """SciPy's Euclidean distance transform (SciPy imported when first needed)."""
+    from scipy import ndimage
+
+    return ndimage.distance_transform_edt(mask)

@@ -13,7 +13,6 @@ writes the report, the command line calls both.
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
 
 from ._cost import prior_values
 from ._prepared import PreparedMap, make_engine
@@ -143,6 +142,8 @@ def covariance_check(matcher, grid, *, flip=0.002, drop=0.1, trials=200, seed=0,
     test = slice(half, trials)
     n = trials - half
     nees = raw[test] / scale
+    from scipy import stats
+
     band = (stats.chi2.ppf(0.025, 2 * n) / n, stats.chi2.ppf(0.975, 2 * n) / n)
     return CovarianceCheck(dict(flip=flip, drop=drop), trials, scale, float(nees.mean()), band,
                            np.cov(errors[test].T), scale * np.linalg.inv(np.linalg.inv(covs[test]).mean(axis=0)),

@@ -10,7 +10,7 @@ With ``executor`` (any ``concurrent.futures.Executor`` whose workers are process
 "spawn" or "forkserver", or Dask's ``Client.get_executor()``) the tasks go out in chunks (blocks
 of consecutive tasks dealt out in turn, ``BLOCK``), each with the maps it names, sent and
 prepared once per chunk; a worker
-starts Taichi with the machine's cores shared among the workers (``_kernels.set_threads``).
+starts Taichi with the machine's cores shared among the workers (``_taichi.set_threads``).
 Each chunk costs a map's transfer and preparation per distinct map it names, so fewer, larger
 chunks suit tasks that share maps (an all-pairs check), more chunks balance unequal tasks.
 A worker forked after Taichi started in the parent would hang; taichi_match detects it and the
@@ -24,8 +24,10 @@ from typing import Iterable, Iterator, List, Optional, Tuple, Union
 
 from ._errors import InvalidMapError, InvalidOptionError, TaichiMatchError
 from ._grid import GridMap, _from_code, grid_code
-from ._kernels import _allowed_cpus, set_threads
-from ._matcher import Matcher, MatchOptions, MatchResult
+from ._taichi import _allowed_cpus, set_threads
+from ._matcher import Matcher
+from ._options import MatchOptions
+from ._result import MatchResult
 
 __all__ = ["match_many", "iter_matches"]
 

@@ -15,7 +15,8 @@ import time
 import numpy as np
 
 from . import plots
-from ._matcher import Matcher, MatchOptions
+from ._matcher import Matcher
+from ._options import MatchOptions
 from ._prepared import PreparedMap
 from .experiments import TABLES, covariance_check, run_row, surface
 from .scenes import corridor

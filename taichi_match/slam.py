@@ -76,7 +76,8 @@ import numpy as np
 
 from ._errors import InvalidOptionError
 from ._grid import cells
-from ._matcher import Matcher, MatchOptions
+from ._matcher import Matcher
+from ._options import MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
 from .logs import LaserLog

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import differentiate, optimize
 
-from taichi_match._bfgs import Status
+from taichi_match import Status
 from taichi_match._cost import prior, prior_hessian
 from taichi_match._newton import minimize_newton, trust_region_step
 
