@@ -23,8 +23,8 @@ import numpy as np
 
 import taichi_match as tm
 from taichi_match.reproduce import git_revision
-from taichi_match._cost import gradient_stencil
-from taichi_match._prepared import make_engine
+from taichi_match._cost import gradient_stencil, hessian_stencil
+from taichi_match._engines import make_engine
 from taichi_match.scenes import corridor
 
 
@@ -54,7 +54,7 @@ def main():
     for name, engine in engines.items():
         reps = 51 if name == "taichi" else 7
         kernel[name] = (median_time(lambda: engine(gradient_stencil(pose, steps)), reps),
-                        median_time(lambda: engine.hessian_stencil(pose, steps), reps))
+                        median_time(lambda: engine(hessian_stencil(pose, steps)), reps))
 
     def summary(res):
         sec = np.array([r.seconds for r in res])

@@ -19,7 +19,8 @@ from ._covariance import CALIBRATED_COVARIANCE_SCALE
 from ._matcher import Matcher, match
 from ._options import MatchOptions
 from ._result import MatchResult
-from ._prepared import PreparedMap, make_engine
+from ._engines import make_engine
+from ._prepared import PreparedMap
 from ._search import Hypothesis
 from ._se2 import as_poses, compose, inverse, transform_points, wrap_angle
 from .many import iter_matches, match_many
@@ -43,6 +44,51 @@ def discrepancy(a: GridMap, b: GridMap, poses, *, engine="taichi", return_overla
     Each known cell of B, taken at its centre, is mapped into A and looked up with floor; it adds
     |p_A - p_B| when it lands on a known cell of A. Returns the N values (float64), and the
     number of cells compared per pose as well when ``return_overlap`` is true.
+
+    Parameters
+    ----------
+    a, b : GridMap
+        The two maps, each in its own frame.
+    poses : array_like, shape (N, 3) or (3,)
+        Poses r_A2B = (x, y, theta) of B's frame in A's, metres and radians.
+    engine : {"taichi", "numpy"}
+        The Taichi kernels, or the plain NumPy oracle (``taichi_match._reference``); the same
+        values.
+    return_overlap : bool
+        Also return the number of cells compared at each pose.
+
+    Returns
+    -------
+    values : numpy.ndarray, shape (N,)
+        e(A, B, r) per pose, float64 (0 where the maps do not overlap).
+    overlap : numpy.ndarray, shape (N,)
+        The known cells of B that land on known cells of A per pose (int); only with
+        ``return_overlap``.
+
+    Raises
+    ------
+    InvalidMapError
+        If ``a`` or ``b`` is not a ``GridMap``.
+    InvalidPoseError
+        If ``poses`` is not of shape (N, 3) or (3,), or holds a non-finite value.
+    InvalidOptionError
+        For an unknown ``engine``.
+
+    Examples
+    --------
+    A map whose right half is a wall, against itself: 0 at the identity; moved 0.1 m (a cell)
+    along x, the 20 free cells next to the wall land on it and a column leaves A; along y
+    nothing changes but the row that leaves A:
+
+    >>> import numpy as np
+    >>> from taichi_match import GridMap, discrepancy
+    >>> prob = np.zeros((20, 20))
+    >>> prob[:, 10:] = 1.0
+    >>> a = GridMap(prob, 0.1)
+    >>> values, overlap = discrepancy(a, a, [(0.0, 0.0, 0.0), (0.1, 0.0, 0.0), (0.0, 0.1, 0.0)],
+    ...                               engine="numpy", return_overlap=True)
+    >>> values.tolist(), overlap.tolist()
+    ([0.0, 20.0, 0.0], [400, 380, 380])
     """
     for name, grid in (("a", a), ("b", b)):
         if not isinstance(grid, GridMap):

@@ -10,7 +10,6 @@ import numpy as np
 
 from ._covariance import centroid_metric
 from ._grid import GridMap
-from ._kernels import PAD
 
 __all__ = [
     "AffineMap", "prior", "prior_terms", "prior_values", "prior_hessian", "gradient_stencil", "gradient_from_stencil",
@@ -34,8 +33,8 @@ class AffineMap:
     launch).
     """
 
-    def __init__(self, a: GridMap, b: GridMap, pad=PAD, b_pad=0):
-        """``pad``: the ring around A's grid; ``b_pad``: around B's, whose cell (i, j) is then B's
+    def __init__(self, a: GridMap, b: GridMap, pad: int, b_pad: int = 0):
+        """``pad``: the ring around A's grid (``_kernels.PAD``); ``b_pad``: around B's, whose cell (i, j) is then B's
         cell (i - b_pad, j - b_pad)."""
         # plain floats (the same IEEE arithmetic as NumPy's scalars, a tenth of the time)
         bx, by, b_yaw = (float(v) for v in b.corner_pose)
@@ -311,7 +310,7 @@ class LevelCost:
         else:
             self._count(25, count)
             spared = getattr(self._engine, "dense_launches", 0)        # count="any": a launch only if needed
-            values, counts = self._engine.hessian_stencil(r, self.z_steps, count, basis=self._from_z)
+            values, counts = self._engine(hessian_stencil(r, self.z_steps, self._from_z), count)
             self._counter.launches += getattr(self._engine, "dense_launches", 0) - spared
             grad_z, hess_z = gradient_from_stencil(values, self.z_steps), hessian_from_stencil(values, self.z_steps)
             hess = self._to_z.T @ hess_z @ self._to_z                      # eq. (12) in r

@@ -14,7 +14,8 @@ from ._bfgs import minimize_bfgs, polish
 from ._cost import Counter, LevelCost
 from ._newton import minimize_newton
 from ._options import MatchOptions
-from ._prepared import PreparedMap, make_engine
+from ._engines import make_engine
+from ._prepared import PreparedMap
 from ._status import Status
 
 __all__ = ["Descent", "descend"]

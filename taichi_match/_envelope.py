@@ -220,8 +220,8 @@ class EnvelopeEngine:
         self._grid_a, self._grid_b = a.conflict, b.conflict
         self._points_b = b.wall_array(unknown_cost)
         self._points_a = a.wall_array(unknown_cost)
-        self._b2a = AffineMap(a.frame, b.frame)
-        self._a2b = AffineMap(b.frame, a.frame)
+        self._b2a = AffineMap(a.frame, b.frame, PAD)
+        self._a2b = AffineMap(b.frame, a.frame, PAD)
         self._launcher = Launcher(_kernel, (self._grid_a, self._points_b, None, self._grid_b, self._points_a, None))
 
     def __call__(self, poses, count="all"):

@@ -17,6 +17,7 @@ Conventions, stated once for the whole library:
 import numbers
 
 import numpy as np
+import numpy.typing as npt
 
 from ._errors import InvalidMapError
 
@@ -28,19 +29,54 @@ MAX_CELLS = 2**31 - 1 - 4 * 65536      # cells of a map, padding included, must 
 class GridMap:
     """An immutable 2-D occupancy grid with its resolution and origin.
 
+    The conventions (rows grow with y, cells represented by their centres, ``origin``) are those
+    of the module docstring of ``taichi_match._grid``.
+
     Parameters
     ----------
     prob : array_like, shape (rows, cols)
-        Occupancy probabilities in [0, 1], NaN for unknown cells. Row i grows with y.
+        Occupancy probabilities in [0, 1], NaN for unknown cells. Row i grows with y. Integer and
+        boolean arrays are taken as probabilities; the masked cells of a masked array are unknown.
+        The values are copied (float64, read-only).
     resolution : float
         Cell side in metres, > 0.
-    origin : (float, float)
-        (x0, y0) of the outer corner of cell (0, 0), metres, in the map's own frame.
+    origin : (float, float) or (float, float, float)
+        (x0, y0) of the outer corner of cell (0, 0), metres, in the map's own frame; or
+        (x0, y0, yaw) as in a ROS map_server YAML, the grid then turned by ``yaw`` radians about
+        that corner.
+
+    Raises
+    ------
+    InvalidMapError
+        If ``prob`` is not a non-empty 2-D array of values in [0, 1] or NaN (or is larger than
+        ``MAX_CELLS``), ``resolution`` is not finite and > 0, or ``origin`` is not 2 or 3 finite
+        numbers.
+
+    Examples
+    --------
+    A 2 x 2 m room of 20 x 20 cells, unknown outside a free square with a wall along its
+    bottom edge:
+
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> prob = np.full((20, 20), np.nan)
+    >>> prob[5:15, 5:15] = 0.0
+    >>> prob[5, 5:15] = 1.0                       # row 5: y in [-0.5, -0.4)
+    >>> grid = GridMap(prob, resolution=0.1, origin=(-1.0, -1.0))
+    >>> grid
+    GridMap(20x20 cells, resolution=0.1 m, origin=(-1.0, -1.0), 100 known cells)
+    >>> grid.extent
+    (-1.0, 1.0, -1.0, 1.0)
+    >>> row, col = grid.cell_of([0.03, -0.47])
+    >>> int(row), int(col), float(grid.prob[int(row), int(col)])
+    (5, 10, 1.0)
+    >>> grid.prob.flags.writeable
+    False
     """
 
     __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "_known", "_code", "__weakref__")
 
-    def __init__(self, prob, resolution, origin=(0.0, 0.0)):
+    def __init__(self, prob: npt.ArrayLike, resolution: float, origin: npt.ArrayLike = (0.0, 0.0)) -> None:
         self._known = self._code = None
         self._prob = _check_prob(prob)
         self._resolution = _check_resolution(resolution)
@@ -48,8 +84,8 @@ class GridMap:
         self._origin = tuple(xy)
 
     @property
-    def prob(self):
-        """Read-only float64 array (rows, cols); NaN = unknown."""
+    def prob(self) -> np.ndarray:
+        """Read-only float64 array (rows, cols) of occupancy probabilities; NaN = unknown."""
         if self._prob is None:                  # a map made from its trinary code (``_from_code``)
             prob = trinary_values(self._code)
             prob.setflags(write=False)
@@ -57,30 +93,33 @@ class GridMap:
         return self._prob
 
     @property
-    def resolution(self):
+    def resolution(self) -> float:
+        """Cell side, metres."""
         return self._resolution
 
     @property
-    def origin(self):
+    def origin(self) -> tuple[float, float]:
         """(x0, y0): outer corner of cell (0, 0), metres."""
         return self._origin
 
     @property
-    def yaw(self):
+    def yaw(self) -> float:
         """Rotation of the grid about ``origin`` in the map's frame, radians (0 for most maps)."""
         return self._yaw
 
     @property
-    def corner_pose(self):
-        """(x0, y0, yaw): the pose of the grid's local frame (corner of cell (0, 0)) in the map frame."""
+    def corner_pose(self) -> tuple[float, float, float]:
+        """(x0, y0, yaw): the pose of the grid's local frame (corner of cell (0, 0)) in the map frame,
+        as ``origin`` in a map_server YAML."""
         return (*self._origin, self._yaw)
 
     @property
-    def shape(self):
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) of the grid."""
         return self._prob.shape if self._prob is not None else self._code.shape
 
     @property
-    def known(self):
+    def known(self) -> np.ndarray:
         """Read-only boolean mask of known (non-NaN) cells (made once: the map never changes)."""
         if self._known is None:
             known = ~np.isnan(self._prob) if self._prob is not None else self._code != UNKNOWN
@@ -89,9 +128,18 @@ class GridMap:
         return self._known
 
     @property
-    def extent(self):
+    def extent(self) -> tuple[float, float, float, float]:
         """(x_min, x_max, y_min, y_max) of the grid in the map frame, metres (the bounding box
-        of the turned grid when yaw != 0)."""
+        of the turned grid when yaw != 0).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from taichi_match import GridMap
+        >>> turned = GridMap(np.zeros((10, 20)), 0.1, origin=(1.0, 0.0, np.pi / 2))
+        >>> [round(v, 3) for v in turned.extent]              # 2 m along x become 2 m along y
+        [0.0, 1.0, 0.0, 2.0]
+        """
         rows, cols = self.shape
         w, h = cols * self._resolution, rows * self._resolution
         c, s = np.cos(self._yaw), np.sin(self._yaw)
@@ -99,9 +147,30 @@ class GridMap:
         ys = self._origin[1] + np.array([0.0, s * w, c * h, s * w + c * h])
         return (float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max()))
 
-    def cell_centres(self, rows=None, cols=None):
-        """Eq. (2): the (x, y) centres of cells (rows[k], cols[k]) in the map frame; all cells when
-        both are None."""
+    def cell_centres(self, rows: npt.ArrayLike | None = None,
+                     cols: npt.ArrayLike | None = None) -> np.ndarray:
+        """Eq. (2): the (x, y) centres of cells (rows[k], cols[k]) in the map frame.
+
+        Parameters
+        ----------
+        rows, cols : array_like of int, optional
+            Cell indices, broadcast together; both None (the default): every cell.
+
+        Returns
+        -------
+        numpy.ndarray, shape (..., 2)
+            (x, y) in metres, in the map frame; (rows, cols, 2) for every cell.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from taichi_match import GridMap
+        >>> grid = GridMap(np.zeros((20, 20)), 0.1, origin=(-1.0, -1.0))
+        >>> grid.cell_centres([0, 19], [0, 10]).round(3).tolist()
+        [[-0.95, -0.95], [0.05, 0.95]]
+        >>> grid.cell_centres().shape
+        (20, 20, 2)
+        """
         if rows is None and cols is None:
             rows, cols = np.indices(self.shape)
         lx = (np.asarray(cols, dtype=np.float64) + 0.5) * self._resolution
@@ -110,23 +179,83 @@ class GridMap:
         x0, y0 = self._origin
         return np.stack([x0 + c * lx - s * ly, y0 + s * lx + c * ly], axis=-1)
 
-    def cell_of(self, points):
-        """Eq. (3): integer (row, col) of the cells the map-frame points (..., 2) fall in (may lie
-        outside the grid)."""
+    def cell_of(self, points: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. (3): integer (row, col) of the cells the map-frame points (..., 2) fall in.
+
+        Parameters
+        ----------
+        points : array_like, shape (..., 2)
+            (x, y) in the map frame, metres.
+
+        Returns
+        -------
+        rows, cols : numpy.ndarray, shape (...)
+            The floor of ``grid_coordinates``, as float64 arrays of whole numbers; they may lie
+            outside the grid (negative or >= ``shape``).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from taichi_match import GridMap
+        >>> grid = GridMap(np.zeros((20, 20)), 0.1, origin=(-1.0, -1.0))
+        >>> rows, cols = grid.cell_of([[0.03, -0.47], [-1.05, 0.0]])
+        >>> rows.tolist(), cols.tolist()                    # the second point is left of the grid
+        ([5.0, 10.0], [10.0, -1.0])
+        """
         rows, cols = self.grid_coordinates(points)
         return np.floor(rows), np.floor(cols)
 
-    def grid_coordinates(self, points):
+    def grid_coordinates(self, points: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """Continuous (row, col) of map-frame points (..., 2): cell (i, j) spans [i, i+1) x [j, j+1),
-        its centre is (i + 1/2, j + 1/2)."""
+        its centre is (i + 1/2, j + 1/2).
+
+        Parameters
+        ----------
+        points : array_like, shape (..., 2)
+            (x, y) in the map frame, metres.
+
+        Returns
+        -------
+        rows, cols : numpy.ndarray, shape (...)
+            Continuous row and column coordinates (float64).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from taichi_match import GridMap
+        >>> grid = GridMap(np.zeros((20, 20)), 0.1, origin=(-1.0, -1.0))
+        >>> rows, cols = grid.grid_coordinates(grid.cell_centres([3], [7]))
+        >>> rows.round(6).tolist(), cols.round(6).tolist()
+        ([3.5], [7.5])
+        """
         points = np.asarray(points, dtype=np.float64)
         dx = points[..., 0] - self._origin[0]
         dy = points[..., 1] - self._origin[1]
         c, s = np.cos(self._yaw), np.sin(self._yaw)
         return (-s * dx + c * dy) / self._resolution, (c * dx + s * dy) / self._resolution
 
-    def with_prob(self, prob):
-        """A map with the same geometry and new probabilities."""
+    def with_prob(self, prob: npt.ArrayLike) -> "GridMap":
+        """A map with the same geometry (resolution, origin, yaw) and new probabilities.
+
+        Parameters
+        ----------
+        prob : array_like, shape (rows, cols)
+            As for ``GridMap``; the shape may differ from this map's (what is kept is the cell size
+            and the corner pose of cell (0, 0)).
+
+        Returns
+        -------
+        GridMap
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from taichi_match import GridMap
+        >>> grid = GridMap(np.zeros((20, 20)), 0.1, origin=(-1.0, -1.0, 0.5))
+        >>> walls = grid.with_prob(np.ones((20, 20)))
+        >>> walls.corner_pose == grid.corner_pose, float(walls.prob.mean())
+        (True, 1.0)
+        """
         return GridMap(prob, self._resolution, self.corner_pose)
 
     def _with_trusted(self, prob):
@@ -247,6 +376,15 @@ def trinary(grid: GridMap, *, occupied: float = 0.65, free: float = 0.196) -> Gr
     of -0.4) against one seen free often (p near 0) would add 0.4 to e, and thousands of such
     differences pull the minimum toward poses with less overlap (measured on laser-built submaps:
     bench/TUNING.md). Maps that are already trinary are unchanged.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> from taichi_match._grid import trinary
+    >>> grid = GridMap([[0.1, 0.4, 0.9, np.nan]], 0.05)
+    >>> trinary(grid).prob.tolist()
+    [[0.0, nan, 1.0, nan]]
     """
     return grid._with_trusted(trinary_values(trinary_code(grid.prob, occupied, free)))
 

@@ -1,11 +1,11 @@
 """Taichi kernels (CPU backend) evaluating eq. (6) for a batch of poses in one parallel launch.
 
-Three kernels: ``discrepancy_rows`` for any batch of poses; ``hessian_stencil_rows`` for the 25
-poses of the Hessian stencil (eq. 10-12) when its x and y steps are whole cells of A along A's
-grid axes (those poses then differ, per theta offset, only by whole-cell shifts of the lookup in
-A, so 5 index computations serve 25 poses and B's cell is read once for all of them); and
-``bilinear_rows``, the option beyond the paper that interpolates A between its cell centres and
-also sums what the analytic gradient needs.
+Two kernels: ``discrepancy_rows`` for any batch of poses, and ``bilinear_rows``, the option
+beyond the paper that interpolates A between its cell centres and also sums what the analytic
+gradient needs. ``TaichiDense`` is the "taichi" backend's dense evaluator (``_engines``) on them.
+(A third kernel served the 25 poses of the Hessian stencil with 5 index computations; it ran only
+for the paper's dense blur on maps of 50,000+ known cells, measured 1.00x end to end at the
+default options, and was removed.)
 
 The kernels know nothing but arrays:
 
@@ -27,10 +27,11 @@ import typing
 
 import numpy as np
 
+from ._cost import AffineMap
 from ._launch import Launcher
 from ._taichi import kernels
 
-__all__ = ["TaichiEngine", "Kernels", "dense_kernels", "PAD", "COUNT_MODES"]
+__all__ = ["TaichiDense", "TaichiEngine", "Kernels", "dense_kernels", "PAD", "COUNT_MODES"]
 
 # Width of the ring of unknown cells around A: lookups are clamped two cells inside the padded
 # grid and then shifted by up to two cells, so any lookup that leaves A must land on the ring.
@@ -90,65 +91,6 @@ def _build_kernel(ti):
             if ti.static(count_mode != 0):
                 out[1, k, r] = ti.f32(cnt)          # exact: a row has far fewer than 2**24 cells
 
-    # The 25 poses of the Hessian stencil (``_cost.hessian_stencil``, in its order) by theta offset:
-    # poses that differ only in x and y by whole cells of A (A's grid axis-aligned with its frame,
-    # steps of one cell) look up the same cell of A shifted by whole cells, so they share one
-    # index computation. Per theta offset (-2..2 steps): (pose number, cell shift (du, dv)).
-    stencil_groups = (
-        ((9, (0, 0)),),
-        ((10, (0, 0)), (17, (-1, 0)), (19, (1, 0)), (21, (0, -1)), (23, (0, 1))),
-        ((0, (0, 0)), (1, (-2, 0)), (2, (-1, 0)), (3, (1, 0)), (4, (2, 0)), (5, (0, -2)), (6, (0, -1)),
-         (7, (0, 1)), (8, (0, 2)), (13, (-1, -1)), (14, (-1, 1)), (15, (1, -1)), (16, (1, 1))),
-        ((11, (0, 0)), (18, (-1, 0)), (20, (1, 0)), (22, (0, -1)), (24, (0, 1))),
-        ((12, (0, 0)),),
-    )
-
-    @ti.func
-    def group_sums(a: ti.template(), b: ti.template(), out: ti.template(), r, i, lo, hi, u0, v0, du, dv,
-                   u_max, v_max, group: ti.template(), count: ti.template()):
-        acc = ti.Vector([0.0] * ti.static(len(group)), dt=ti.f32)
-        cnt = 0
-        for j in range(lo, hi):
-            # clamped two cells inside the edge, so the shifted lookups stay in A; with a ring of
-            # PAD >= 5 unknown cells every lookup that left A still lands on an unknown cell
-            iu = ti.min(ti.max(ti.cast(u0 + du * j, ti.i32), 2), u_max - 2)
-            iv = ti.min(ti.max(ti.cast(v0 + dv * j, ti.i32), 2), v_max - 2)
-            pb = b[i, j]
-            for m in ti.static(range(len(group))):
-                pa = a[iv + group[m][1][1], iu + group[m][1][0]]
-                ok = (pa >= 0.0) & (pb >= 0.0)
-                acc[m] += ti.select(ok, ti.abs(pa - pb), 0.0)
-                if ti.static(count and m == 0 and group[0][0] == 0):
-                    cnt += ti.select(ok, 1, 0)
-        for m in ti.static(range(len(group))):
-            out[0, group[m][0], r] = acc[m]
-        if ti.static(count and group[0][0] == 0):
-            out[1, 0, r] = ti.f32(cnt)
-
-    @ti.kernel
-    def hessian_stencil_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
-                             affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
-                             out: ti.types.ndarray(dtype=ti.f32, ndim=3), count_mode: ti.template()):
-        # affine: (5, 6), the poses (x, y, theta + k * eps_theta), k = -2..2
-        u_max = a.shape[1] - 1
-        v_max = a.shape[0] - 1
-        for r, t in ti.ndrange(rows.shape[0], 5):     # rows outer: a block of work items mixes all t
-            i = rows[r, 0]
-            du, dv, u0, v0 = row_start(affine, t, i)
-            lo, hi = rows[r, 1], rows[r, 2]
-            # one branch per (theta offset, row), outside the inner loops
-            if t == 2:
-                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[2],
-                           count_mode != 0)
-            elif t == 1:
-                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[1], False)
-            elif t == 3:
-                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[3], False)
-            elif t == 0:
-                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[0], False)
-            else:
-                group_sums(a, b, out, r, i, lo, hi, u0, v0, du, dv, u_max, v_max, stencil_groups[4], False)
-
     @ti.kernel
     def bilinear_rows(a: f32_2d, b: f32_2d, rows: ti.types.ndarray(dtype=ti.i32, ndim=2),
                       affine: ti.types.ndarray(dtype=ti.f64, ndim=2),
@@ -187,12 +129,11 @@ def _build_kernel(ti):
             for m in ti.static(range(6)):
                 out[m, k, r] = acc[m]
 
-    return Kernels(discrepancy_rows, hessian_stencil_rows, bilinear_rows)
+    return Kernels(discrepancy_rows, bilinear_rows)
 
 
 class Kernels(typing.NamedTuple):
     poses: object          # discrepancy_rows: any batch of poses
-    stencil: object        # hessian_stencil_rows: the 25 poses of the Hessian stencil
     bilinear: object       # bilinear_rows: e, overlap and gradient sums with A interpolated
 
 
@@ -211,18 +152,6 @@ class TaichiEngine:
         self._b = b
         self._rows = rows
         self._launchers = {}
-
-    def hessian_stencil(self, affine, count="first"):
-        """The 25 values of ``_cost.hessian_stencil`` from the affine maps (5, 6) of its theta
-        offsets -2..2 (the caller checks that its x, y steps are whole cells of A along A's axes).
-
-        count: "first" (the centre's overlap) or "none". Returns (e (25,), overlap (25,) or None)."""
-        mode = COUNT_MODES[count]
-        if mode == 2:
-            raise ValueError("the stencil kernel counts the overlap of the centre only")
-        if self._rows.shape[0] == 0:
-            return np.zeros(25), (np.zeros(25, dtype=np.int64) if mode else None)
-        return self._totals(self._run("stencil", affine, (2 if mode else 1, 25), mode), mode)
 
     def __call__(self, affine, count="all"):
         """affine: (N, 6) float64; count: which poses get an overlap count, "all", "first" or "none".
@@ -283,3 +212,52 @@ class TaichiEngine:
                    | (v.max(axis=1) < 0) | (v.min(axis=1) > self._a.shape[0]))
         affine[outside] = 0.0
         return affine
+
+
+class TaichiDense:
+    """The "taichi" backend's ``_engines.DenseEvaluator``: eq. (6) for batches of poses of B in A,
+    one launch per batch (the overlap counted in it).
+
+    With ``count_only`` the kernel reads the maps' conflict grids (laid out as ``a.padded``, known
+    exactly where >= 0) instead of their values: all an overlap count needs, with no copy of
+    either map as values (the envelope discrepancy counts its overlap so).
+    """
+
+    counts_free = True           # the kernel counts the overlap as it sums
+
+    def __init__(self, a, b, count_only: bool = False):
+        if count_only:
+            # B's conflict grid is read at its cells PAD rows and columns in
+            self._kernel = TaichiEngine(a.conflict, b.conflict, b.rows + np.int32(PAD))
+        else:
+            self._kernel = TaichiEngine(a.padded, b.values, b.rows)
+        self._affine = AffineMap(a.frame, b.frame, PAD, b_pad=PAD if count_only else 0)
+        self._rows_i = b.rows[:, 0].astype(np.float64)
+
+    def __call__(self, poses, count="all"):
+        return self._kernel(self._affine(poses), count)
+
+    def overlap(self, poses):
+        """The overlap (N,) at each pose, one launch."""
+        return self(poses, "all")[1]
+
+    def bilinear(self, poses):
+        """A interpolated bilinearly between its cell centres (an option beyond the paper):
+        (e (N,), overlap (N,), gradient of e in (x, y, theta) (N, 3)), one launch."""
+        poses = np.asarray(poses, dtype=np.float64)
+        e, counts, sums = self._kernel.bilinear(self._affine(poses))
+        # u = c0 j + c1 i + c2, v = c3 j + c4 i + c5: d/dq sum = dc0 S(g_u j) + dc1 S(g_u i) + ...
+        su, suj, sv, svj = sums
+        totals = np.stack([suj.sum(axis=1), su @ self._rows_i, su.sum(axis=1),
+                           svj.sum(axis=1), sv @ self._rows_i, sv.sum(axis=1)], axis=1)      # (N, 6)
+        return e, counts, np.einsum("kqc,kc->kq", self._affine_derivatives(poses), totals)
+
+    def _affine_derivatives(self, poses, h=1e-6):
+        """(N, 3, 6): d affine coefficients / d (x, y, theta), by central differences (the map is
+        linear in x and y and smooth in theta: the error is ~h^2)."""
+        out = np.empty((len(poses), 3, 6))
+        for q in range(3):
+            step = np.zeros(3)
+            step[q] = h
+            out[:, q] = (self._affine(poses + step) - self._affine(poses - step)) / (2.0 * h)
+        return out

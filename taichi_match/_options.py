@@ -11,7 +11,7 @@ import numpy as np
 
 from ._blur import BLUR_KINDS
 from ._errors import InvalidOptionError
-from ._prepared import ENGINES
+from ._engines import ENGINES
 
 __all__ = ["MatchOptions"]
 

@@ -13,27 +13,18 @@ import numpy as np
 
 from ._blur import blur, blur_everywhere, wall_transform
 from ._distance import near_squared_distance, near_weighted_envelope
-from ._cost import AffineMap, hessian_stencil
 from ._errors import InvalidOptionError
 from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted, cells, grid_code, trinary_values, twin
-from ._kernels import PAD, TaichiEngine
+from ._kernels import PAD
 from ._pyramid import coarsen, halve_code
-from ._envelope import (EnvelopeEngine, NumpyEnvelope, conflict_grid, envelope_profile, envelope_reach, near_conflict_grid,
+from ._envelope import (conflict_grid, envelope_profile, envelope_reach, near_conflict_grid,
                         points_array, wall_points)
-from ._reference import NumpyBilinear, NumpyDiscrepancy
 from ._verdict import CONFLICT_CELLS, WallDistance
 
-__all__ = ["PreparedMap", "make_engine", "ENGINES"]
+__all__ = ["PreparedMap"]
 
-ENGINES = ("taichi", "numpy")
 _UNKNOWN = np.float32(-1.0)
 
-# The stencil kernel runs 5 work items per row of B (one per theta offset) where the general one
-# runs 25; on maps smaller than this the fewer items share out worse over the cores and it was no
-# faster (measured on the 2-core machine: 15 % faster at 117k known cells, slower at 29k and 7k).
-STENCIL_KERNEL_MIN_CELLS = 50_000
-# count="any": this many of B's walls landing on known cells of A stand for the overlap count
-OVERLAP_PROOF_WALLS = 10
 # The envelope's walls' distances are stamped around each wall (``near_squared_distance``) while
 # walls x (2 reach + 1)^2 is at most this many times the map's cells: measured against the exact
 # transforms over every cell on laser submaps and the shared robot maps, every pyramid level, two
@@ -292,164 +283,3 @@ class PreparedMap:
 
     def __repr__(self):
         return f"PreparedMap({self.frame!r}, blur {self.blur_kind} {self.blur_width} m)"
-
-
-def make_engine(name, a: PreparedMap, b: PreparedMap, unknown_cost: float = 0.0):
-    """An engine evaluating the discrepancy of B in A with the named engine: eq. (6), or for maps
-    prepared with the "envelope" blur the envelope discrepancy (``_envelope``)."""
-    if name not in ENGINES:
-        raise InvalidOptionError(f"engine must be one of {ENGINES}; got {name!r}")
-    if (a.blur_kind == "envelope") != (b.blur_kind == "envelope"):
-        raise InvalidOptionError("both maps must be prepared with the same kind of blur")
-    if a.blur_kind == "envelope":
-        return EnvelopeDiscrepancy(name, a, b, unknown_cost)
-    return Engine(name, a, b)
-
-
-class EnvelopeDiscrepancy:
-    """The envelope discrepancy with the engines' interface (``Engine``); no bilinear option.
-
-    The overlap (known cells of B on known cells of A, as for eq. 6) takes a second launch of the
-    dense kernel on the maps themselves, for the poses ``count`` asks for; for "any", only when
-    fewer than ``OVERLAP_PROOF_WALLS`` of B's walls landing on known cells of A (counted in the
-    envelope's launch, free) do not already show it (``dense_launches`` counts those launches).
-    """
-
-    counts_free = False          # counting the overlap costs a launch of its own
-
-    def __init__(self, name, a: PreparedMap, b: PreparedMap, unknown_cost):
-        self.name = name
-        if name == "taichi":
-            self._evaluate = EnvelopeEngine(a, b, unknown_cost)
-        else:
-            self._evaluate = NumpyEnvelope(a.lower, b.lower, a.blur_width, b.blur_width, unknown_cost)
-        self._maps = (a, b)
-        self._dense_engine = None
-        self.dense_launches = 0          # overlap counts that count="any" could not spare
-
-    @property
-    def _dense(self):
-        """The dense engine that counts the overlap, made when first needed (a middle pyramid
-        level never counts)."""
-        if self._dense_engine is None:
-            # the conflict grids are laid out as ``padded`` and known exactly where >= 0, all the
-            # count reads: no copy of either map as values
-            a, b = self._maps
-            self._dense_engine = Engine(self.name, a, b, a_lookup=a.conflict, b_lookup=b.conflict)
-        return self._dense_engine
-
-    def __call__(self, poses, count="all"):
-        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        if count == "any" and self.name == "taichi":
-            # whether the maps overlap at the first pose: B's walls landing on known cells of A
-            # are known cells of B doing so; the dense launch only when fewer than
-            # ``OVERLAP_PROOF_WALLS`` show it (the two kernels round the lookup differently)
-            values, walls = self._evaluate(poses, "b_walls")
-            counts = np.zeros(len(poses), dtype=np.int64)
-            if walls[0] >= OVERLAP_PROOF_WALLS:
-                counts[0] = walls[0]
-            else:
-                self.dense_launches += 1
-                counts[:1] = self._dense(poses[:1], "all")[1]
-            return values, counts
-        values = self._evaluate(poses, "none")[0]
-        if count == "none":
-            return values, None
-        if count in ("first", "any"):
-            self.dense_launches += count == "any"
-            counts = np.zeros(len(poses), dtype=np.int64)
-            counts[:1] = self._dense(poses[:1], "all")[1]
-            return values, counts
-        return values, self._dense(poses, "all")[1]
-
-    def overlap(self, poses):
-        """The overlap (N,) at each pose, one launch."""
-        return self._dense.overlap(poses)
-
-    def hessian_stencil(self, pose, steps, count="first", basis=None):
-        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps, basis)`` (one launch, and one
-        more for the overlap unless ``count`` is "none")."""
-        return self(hessian_stencil(pose, steps, basis), count)
-
-    def bilinear(self, poses):
-        raise InvalidOptionError('interpolation="bilinear" needs a dense blur ("gaussian" or "ramp"), '
-                                 'not "envelope"')
-
-
-class Engine:
-    """Eq. (6) for batches of poses of B in A, one launch per batch (the overlap too).
-
-    ``engine(poses (N, 3), count="all") -> (discrepancy (N,), overlap (N,) or None)``: ``count``
-    says whose overlap (known cells of B on known cells of A) is needed: "all" poses, only the
-    "first" (the others may be returned as 0), "any" (only whether the first pose's is 0: the
-    count returned is then > 0 exactly when the overlap is, a lower bound), or "none" (None may be
-    returned); an engine may skip the counting that is not asked for.
-    """
-
-    counts_free = True           # the kernel counts the overlap as it sums
-
-    def __init__(self, name, a: PreparedMap, b: PreparedMap, a_lookup: np.ndarray = None,
-                 b_lookup: np.ndarray = None):
-        """``a_lookup``, ``b_lookup``: float32 grids laid out as ``a.padded`` to read instead of A's
-        and B's maps, when only the overlap is wanted (their known cells exactly their cells >= 0;
-        B's is read at its cells PAD rows and columns in)."""
-        self.name = name
-        self._resolution_a = a.resolution
-        # the stencil kernel needs A's grid axes along its frame's axes (whole-cell shifts)
-        self._stencil_kernel = (a.frame.corner_pose[2] == 0.0 and b.n_known >= STENCIL_KERNEL_MIN_CELLS
-                                and b_lookup is None)
-        self._maps = (a, b)
-        self._bilinear_oracle = None
-        if name == "taichi":
-            if b_lookup is None:
-                self._kernel = TaichiEngine(a.padded if a_lookup is None else a_lookup, b.values, b.rows)
-            else:
-                self._kernel = TaichiEngine(a_lookup, b_lookup, b.rows + np.int32(PAD))
-            self._affine = AffineMap(a.frame, b.frame, b_pad=0 if b_lookup is None else PAD)
-            self._rows_i = b.rows[:, 0].astype(np.float64)
-        else:
-            self._oracle = NumpyDiscrepancy(a.lower, b.lower)
-
-    def __call__(self, poses, count="all"):
-        if self.name == "taichi":
-            return self._kernel(self._affine(poses), count)
-        return self._oracle(poses)
-
-    def overlap(self, poses):
-        """The overlap (N,) at each pose, one launch."""
-        return self(poses, "all")[1]
-
-    def hessian_stencil(self, pose, steps, count="first", basis=None):
-        """e at the 25 poses of ``_cost.hessian_stencil(pose, steps, basis)``, in its order (one launch);
-        count: "first" (the centre's overlap) or "none"."""
-        basis = np.eye(3) if basis is None else np.asarray(basis, dtype=np.float64)
-        if (self.name == "taichi" and self._stencil_kernel and np.array_equal(basis[:, :2], np.eye(3)[:, :2])
-                and steps[0] == self._resolution_a and steps[1] == self._resolution_a):
-            thetas = np.asarray(pose, dtype=np.float64) + np.outer(np.arange(-2.0, 3.0), steps[2] * basis[:, 2])
-            return self._kernel.hessian_stencil(self._affine(thetas), count)
-        return self(hessian_stencil(pose, steps, basis), count)
-
-    def bilinear(self, poses):
-        """A interpolated bilinearly between its cell centres (an option beyond the paper):
-        (e (N,), overlap (N,), gradient of e in (x, y, theta) (N, 3)), one launch."""
-        poses = np.asarray(poses, dtype=np.float64)
-        if self.name != "taichi":
-            if self._bilinear_oracle is None:
-                self._bilinear_oracle = NumpyBilinear(self._maps[0].lower, self._maps[1].lower)
-            return self._bilinear_oracle(poses)
-        e, counts, sums = self._kernel.bilinear(self._affine(poses))
-        # u = c0 j + c1 i + c2, v = c3 j + c4 i + c5: d/dq sum = dc0 S(g_u j) + dc1 S(g_u i) + ...
-        su, suj, sv, svj = sums
-        totals = np.stack([suj.sum(axis=1), su @ self._rows_i, su.sum(axis=1),
-                           svj.sum(axis=1), sv @ self._rows_i, sv.sum(axis=1)], axis=1)      # (N, 6)
-        return e, counts, np.einsum("kqc,kc->kq", self._affine_derivatives(poses), totals)
-
-    def _affine_derivatives(self, poses, h=1e-6):
-        """(N, 3, 6): d affine coefficients / d (x, y, theta), by central differences (the map is
-        linear in x and y and smooth in theta: the error is ~h^2)."""
-        out = np.empty((len(poses), 3, 6))
-        for q in range(3):
-            step = np.zeros(3)
-            step[q] = h
-            out[:, q] = (self._affine(poses + step) - self._affine(poses - step)) / (2.0 * h)
-        return out

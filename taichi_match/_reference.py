@@ -15,7 +15,7 @@ import numpy as np
 from ._grid import GridMap
 from ._se2 import as_poses, transform_points
 
-__all__ = ["NumpyDiscrepancy", "NumpyBilinear"]
+__all__ = ["NumpyDiscrepancy", "NumpyBilinear", "NumpyDense"]
 
 
 class NumpyDiscrepancy:
@@ -89,3 +89,27 @@ class NumpyBilinear(NumpyDiscrepancy):
             gt = np.sum(sign * (d_u * (du[0] * dpx + du[1] * dpy) + d_v * (dv[0] * dpx + dv[1] * dpy)))
             grads[k] = gx, gy, gt
         return values, counts, grads
+
+
+class NumpyDense:
+    """The "numpy" backend's ``_engines.DenseEvaluator`` on two maps (every overlap counted)."""
+
+    counts_free = True
+
+    def __init__(self, a: GridMap, b: GridMap):
+        self._maps = (a, b)
+        self._discrepancy = NumpyDiscrepancy(a, b)
+        self._bilinear = None
+
+    def __call__(self, poses, count="all"):
+        return self._discrepancy(poses)
+
+    def overlap(self, poses):
+        """The overlap (N,) at each pose."""
+        return self._discrepancy(poses)[1]
+
+    def bilinear(self, poses):
+        """(e (N,), overlap (N,), gradient (N, 3)) with A interpolated bilinearly."""
+        if self._bilinear is None:
+            self._bilinear = NumpyBilinear(*self._maps)
+        return self._bilinear(poses)

@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._cost import prior_values
-from ._prepared import PreparedMap, make_engine
+from ._engines import make_engine
+from ._prepared import PreparedMap
 from .scenes import noisy_copy, parallel_corridors_y
 
 __all__ = ["TableRow", "TABLES", "RowResult", "run_row", "surface", "covariance_check", "CovarianceCheck"]

@@ -15,6 +15,24 @@ conventions, as ``map_server`` loads a map:
   values are unknown.
 - The image's first row is the top of the map (largest y): rows are flipped on reading.
 - An ``OccupancyGrid`` holds int8 occupancy percent, -1 for unknown, row 0 at the lowest y.
+
+Examples
+--------
+A map written as map_server files and read back, unchanged:
+
+>>> import os, tempfile
+>>> import numpy as np
+>>> from taichi_match import GridMap
+>>> from taichi_match.io import load_map, write_ros_map
+>>> prob = np.full((20, 20), np.nan)
+>>> prob[2:18, 2:18] = 0.0
+>>> prob[2, 2:18] = 1.0
+>>> grid = GridMap(prob, 0.05, origin=(-0.5, -0.5, 0.0))
+>>> with tempfile.TemporaryDirectory() as folder:
+...     write_ros_map(grid, os.path.join(folder, "map.yaml"))
+...     back = load_map(os.path.join(folder, "map.yaml"))
+>>> np.array_equal(back.prob, grid.prob, equal_nan=True), back.corner_pose
+(True, (-0.5, -0.5, 0.0))
 """
 
 import contextlib
@@ -27,8 +45,10 @@ import warnings
 import zipfile
 import zlib
 from io import BytesIO as io_bytes
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from ._errors import InvalidOptionError, MapFileError, MapFormatError
 from ._grid import GridMap
@@ -44,15 +64,61 @@ MAX_MAP_CELLS = 2**28          # cells of a map read from a file (16384 x 16384;
 MAX_FILE_BYTES = 2**31         # bytes of an image or array file
 MAX_YAML_BYTES = 2**20         # bytes of a map's YAML
 
+PathLike = str | os.PathLike          # a file's path, as the functions below take it
+
 
 # ---------------------------------------------------------------------------------------------
 # ROS map_server YAML
 
 
-def read_ros_map(yaml_path, *, occupied_thresh=None, free_thresh=None, negate=None, mode=None,
-                 resolution=None) -> GridMap:
-    """Load a ROS ``map_server`` map. Keyword arguments override the YAML's fields (for maps whose
-    thresholds or resolution are known to be off; see ``shared/maps/SOURCES.md``)."""
+def read_ros_map(yaml_path: PathLike, *, occupied_thresh: float | None = None,
+                 free_thresh: float | None = None, negate: bool | None = None, mode: str | None = None,
+                 resolution: float | None = None) -> GridMap:
+    r"""Load a ROS ``map_server`` map (YAML + image) by map_server's rules (module docstring).
+
+    Parameters
+    ----------
+    yaml_path : str or os.PathLike
+        The map's YAML; its ``image`` is found relative to the YAML's folder.
+    occupied_thresh, free_thresh, negate, mode, resolution : optional
+        Override the YAML's fields (for maps whose thresholds or resolution are known to be off;
+        see ``shared/maps/SOURCES.md``); None: the YAML's value, or map_server's default (0.65,
+        0.196, 0, "trinary").
+
+    Returns
+    -------
+    GridMap
+        Row 0 at the lowest y (the image's last row), ``origin`` = the YAML's [x, y, yaw].
+
+    Raises
+    ------
+    MapFileError
+        If the YAML or image cannot be read, is not a regular file or is above ``MAX_YAML_BYTES``
+        or ``MAX_FILE_BYTES``.
+    MapFormatError
+        If a field is missing or invalid, or the image is not one map_server reads or is larger
+        than ``MAX_MAP_CELLS``.
+    ImportError
+        Without PyYAML or Pillow (the ``maps`` extra).
+
+    Examples
+    --------
+    A map_server map of 3 x 2 pixels written by hand: black is occupied, white free, grey (205)
+    unknown, and the image's first row is the top of the map:
+
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from taichi_match.io import read_ros_map, write_image
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     write_image(os.path.join(folder, "lab.pgm"), np.array([[0, 205], [254, 0], [254, 254]], np.uint8))
+    ...     with open(os.path.join(folder, "lab.yaml"), "w") as f:
+    ...         _ = f.write("image: lab.pgm\nresolution: 0.05\norigin: [-1.0, 2.0, 0.0]\n")
+    ...     grid = read_ros_map(os.path.join(folder, "lab.yaml"))
+    >>> grid.prob.tolist()
+    [[0.0, 0.0], [0.0, 1.0], [1.0, nan]]
+    >>> grid.resolution, grid.corner_pose
+    (0.05, (-1.0, 2.0, 0.0))
+    """
     meta = read_map_yaml(yaml_path)
     for key, value in (("occupied_thresh", occupied_thresh), ("free_thresh", free_thresh), ("negate", negate),
                        ("mode", mode), ("resolution", resolution)):
@@ -65,7 +131,7 @@ def read_ros_map(yaml_path, *, occupied_thresh=None, free_thresh=None, negate=No
     return GridMap(prob, meta["resolution"], tuple(meta["origin"]))
 
 
-def read_map_yaml(yaml_path):
+def read_map_yaml(yaml_path: PathLike) -> dict[str, Any]:
     """The fields of a map_server YAML as a dict, with ``image`` resolved against the YAML's folder
     (PyYAML's ``safe_load``: block and flow style, comments, anchors)."""
     yaml = _yaml()
@@ -176,8 +242,8 @@ def _pixels_to_occupancy(image, meta):
     return out
 
 
-def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occupied_thresh=0.65,
-                  free_thresh=0.196):
+def write_ros_map(grid: GridMap, yaml_path: PathLike, *, image: str | None = None, mode: str = "trinary",
+                  occupied_thresh: float = 0.65, free_thresh: float = 0.196) -> None:
     """Save ``grid`` as a map_server YAML and image (PGM, or PNG by the image name's extension).
 
     ``trinary``: occupied (p > occupied_thresh) black, free (p < free_thresh) white (254),
@@ -189,6 +255,45 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
     temporary files beside them and then renamed over the old ones, image first, with SIGINT,
     SIGTERM and SIGHUP held back meanwhile (in the main thread; the signal is delivered once both
     are in place): an interruption leaves the complete old map or the complete new one.
+
+    Parameters
+    ----------
+    grid : GridMap
+        The map; its ``corner_pose`` becomes the YAML's ``origin``.
+    yaml_path : str or os.PathLike
+        NAME.yaml or NAME.yml.
+    image : str, optional
+        The image's file name, relative to the YAML's folder; default NAME.pgm (NAME.png in scale
+        mode).
+    mode : {"trinary", "scale", "raw"}
+        map_server's ``mode``, written to the YAML.
+    occupied_thresh, free_thresh : float
+        The thresholds, written to the YAML and used for trinary pixels.
+
+    Raises
+    ------
+    InvalidOptionError
+        For an unknown ``mode``, or scale mode with an image that is not PNG.
+    MapFileError
+        If the YAML is not named .yaml/.yml, or a file cannot be written.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> from taichi_match.io import read_ros_map, write_ros_map
+    >>> grid = GridMap([[0.0, 1.0], [np.nan, 0.37]], 0.1, origin=(2.0, 0.0, 0.5))
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     write_ros_map(grid, os.path.join(folder, "map.yaml"))          # trinary: 0.37 is unknown
+    ...     write_ros_map(grid, os.path.join(folder, "raw.yaml"), mode="raw")
+    ...     files = sorted(os.listdir(folder))
+    ...     trinary = read_ros_map(os.path.join(folder, "map.yaml"))
+    ...     raw = read_ros_map(os.path.join(folder, "raw.yaml"))
+    >>> files
+    ['map.pgm', 'map.yaml', 'raw.pgm', 'raw.yaml']
+    >>> trinary.prob.tolist(), raw.prob.tolist(), raw.corner_pose
+    ([[0.0, 1.0], [nan, nan]], [[0.0, 1.0], [nan, 0.37]], (2.0, 0.0, 0.5))
     """
     if mode not in MODES:
         raise InvalidOptionError(f"mode must be one of {MODES}; got {mode!r}")
@@ -213,10 +318,24 @@ def write_ros_map(grid: GridMap, yaml_path, *, image=None, mode="trinary", occup
     _replace_files([(image_path, _image_bytes(image_path, pixels)), (yaml_path, text.encode("utf-8"))])
 
 
-def ros_map_paths(yaml_path, mode="trinary", image=None):
+def ros_map_paths(yaml_path: PathLike, mode: str = "trinary", image: str | None = None) -> tuple[str, str]:
     """(YAML path, image path) that ``write_ros_map`` writes: the image is named after the YAML
     (``map.yaml`` -> ``map.pgm``, ``.png`` in scale mode) unless ``image`` is given, beside it.
-    The YAML's name must end in .yaml or .yml, so the two never clash."""
+    The YAML's name must end in .yaml or .yml, so the two never clash.
+
+    Raises
+    ------
+    MapFileError
+        If the YAML's name does not end in .yaml or .yml, or the image would be the YAML itself.
+
+    Examples
+    --------
+    >>> import os
+    >>> from taichi_match.io import ros_map_paths
+    >>> yaml_path, image_path = ros_map_paths("maps/lab.yaml", mode="scale")
+    >>> yaml_path, os.path.relpath(image_path)
+    ('maps/lab.yaml', 'maps/lab.png')
+    """
     yaml_path = os.fspath(yaml_path)
     base, ext = os.path.splitext(os.path.basename(yaml_path))
     if ext.lower() not in (".yaml", ".yml") or not base:
@@ -301,10 +420,23 @@ def _signals_held(signums=("SIGINT", "SIGTERM", "SIGHUP")):
 IMAGE_FORMATS = ("PNG", "PPM", "BMP", "TIFF", "JPEG", "GIF")      # Pillow's names; PPM holds PGM
 
 
-def read_image(path):
+def read_image(path: PathLike) -> np.ndarray:
     """An image as a uint8 array (rows, cols) or (rows, cols, channels), first row at the top:
     grey, grey + alpha, RGB or RGBA as stored; palettes expanded; 16-bit levels scaled to 8 bits.
-    Its size is checked against ``MAX_MAP_CELLS`` from the header, before the pixels are decoded."""
+    Its size is checked against ``MAX_MAP_CELLS`` from the header, before the pixels are decoded.
+
+    Raises
+    ------
+    MapFileError
+        If the file cannot be read, is not a regular file or is above ``MAX_FILE_BYTES``.
+    MapFormatError
+        If it is not an image map_server reads (PGM, PNG, BMP, TIFF, JPEG, GIF), is damaged, or is
+        larger than ``MAX_MAP_CELLS``.
+
+    Examples
+    --------
+    See ``write_image``.
+    """
     Image = _pillow()
     data = _read_bounded(path, MAX_FILE_BYTES, "image")
     try:
@@ -361,9 +493,29 @@ def _check_size(width, height, path):
         raise MapFormatError(f"{path}: a {width} x {height} image is larger than the limit of {MAX_MAP_CELLS} cells")
 
 
-def write_image(path, pixels):
+def write_image(path: PathLike, pixels: npt.ArrayLike) -> None:
     """Save a uint8 image (rows, cols) or (rows, cols, 2|3|4): PGM (P5, grey only) or PNG (by the
-    name's extension), replacing any old file whole (see ``write_ros_map``)."""
+    name's extension), replacing any old file whole (see ``write_ros_map``).
+
+    Raises
+    ------
+    InvalidOptionError
+        For a PGM with channels, or an array of another shape.
+    MapFileError
+        If the file cannot be written.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from taichi_match.io import read_image, write_image
+    >>> grey_alpha = np.dstack([[[0, 128], [254, 255]], [[255, 255], [0, 255]]]).astype(np.uint8)
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     write_image(os.path.join(folder, "m.png"), grey_alpha)
+    ...     back = read_image(os.path.join(folder, "m.png"))
+    >>> back.shape, np.array_equal(back, grey_alpha)
+    ((2, 2, 2), True)
+    """
     _replace_files([(os.fspath(path), _image_bytes(os.fspath(path), pixels))])
 
 
@@ -383,18 +535,63 @@ def _image_bytes(path, pixels):
 # OccupancyGrid-style arrays and NumPy files
 
 
-def to_occupancy_grid(grid: GridMap):
+def to_occupancy_grid(grid: GridMap) -> tuple[np.ndarray, dict[str, Any]]:
     """(data, info): int8 occupancy percent (rows, cols), -1 unknown, row 0 at the lowest y, and
-    a dict with resolution, width, height and origin (x, y, yaw), as ``nav_msgs/OccupancyGrid``."""
+    a dict with resolution, width, height and origin (x, y, yaw), as ``nav_msgs/OccupancyGrid``.
+
+    Probabilities are rounded to whole percent. ``from_occupancy_grid`` takes ``data`` back (or
+    ``data.ravel()`` with ``width`` and ``height``, as the message holds it).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> from taichi_match.io import from_occupancy_grid, to_occupancy_grid
+    >>> grid = GridMap([[0.0, 0.256], [np.nan, 1.0]], 0.05, origin=(1.0, 2.0))
+    >>> data, info = to_occupancy_grid(grid)
+    >>> data.tolist(), info
+    ([[0, 26], [-1, 100]], {'resolution': 0.05, 'width': 2, 'height': 2, 'origin': (1.0, 2.0, 0.0)})
+    >>> back = from_occupancy_grid(data.ravel(), info["resolution"], info["origin"],
+    ...                            width=info["width"], height=info["height"])
+    >>> back.prob.tolist()
+    [[0.0, 0.26], [nan, 1.0]]
+    """
     p = grid.prob
     data = np.where(np.isnan(p), -1, np.rint(100 * np.nan_to_num(p))).astype(np.int8)
     rows, cols = p.shape
     return data, {"resolution": grid.resolution, "width": cols, "height": rows, "origin": grid.corner_pose}
 
 
-def from_occupancy_grid(data, resolution, origin=(0.0, 0.0, 0.0), *, width=None, height=None) -> GridMap:
+def from_occupancy_grid(data: npt.ArrayLike, resolution: float, origin: npt.ArrayLike = (0.0, 0.0, 0.0), *,
+                        width: int | None = None, height: int | None = None) -> GridMap:
     """A GridMap from OccupancyGrid data: int8 percent (-1 unknown), flat row-major with ``width``
-    and ``height``, or already (rows, cols)."""
+    and ``height``, or already (rows, cols).
+
+    Parameters
+    ----------
+    data : array_like of int
+        Occupancy percent 0..100, -1 unknown, row 0 at the lowest y; flat (``width`` * ``height``)
+        or 2-D (rows, cols).
+    resolution : float
+        Cell side, metres.
+    origin : (x, y) or (x, y, yaw)
+        The message's ``info.origin`` as a 2-D pose (see ``GridMap``).
+    width, height : int, optional
+        Columns and rows, needed for flat data.
+
+    Returns
+    -------
+    GridMap
+
+    Raises
+    ------
+    MapFormatError
+        If flat data does not hold ``width`` * ``height`` values, or a value is outside -1..100.
+
+    Examples
+    --------
+    See ``to_occupancy_grid``.
+    """
     arr = np.asarray(data)
     if arr.ndim == 1:
         if width is None or height is None or arr.size != width * height:
@@ -406,16 +603,50 @@ def from_occupancy_grid(data, resolution, origin=(0.0, 0.0, 0.0), *, width=None,
     return GridMap(np.where(arr < 0, np.nan, arr / 100.0), resolution, origin)
 
 
-def save_npz(grid: GridMap, path):
-    """Save probabilities, resolution and corner pose in a NumPy .npz file."""
+def save_npz(grid: GridMap, path: PathLike) -> None:
+    """Save probabilities, resolution and corner pose in a NumPy .npz file (compressed).
+
+    Raises
+    ------
+    MapFileError
+        If the file cannot be written.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> from taichi_match.io import load_npz, save_npz
+    >>> grid = GridMap([[0.25, np.nan], [1.0, 0.0]], 0.05, origin=(1.0, 2.0, 0.5))
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     save_npz(grid, os.path.join(folder, "map.npz"))
+    ...     back = load_npz(os.path.join(folder, "map.npz"))
+    >>> back.prob.tolist(), back.resolution, back.corner_pose       # exact, grey levels included
+    ([[0.25, nan], [1.0, 0.0]], 0.05, (1.0, 2.0, 0.5))
+    """
     try:
         np.savez_compressed(path, prob=grid.prob, resolution=grid.resolution, origin=np.array(grid.corner_pose))
     except OSError as exc:
         raise MapFileError(f"cannot write {path!r}: {exc.strerror or exc}") from exc
 
 
-def load_npz(path) -> GridMap:
-    """Load a map saved by ``save_npz``."""
+def load_npz(path: PathLike) -> GridMap:
+    """Load a map saved by ``save_npz``.
+
+    The arrays' sizes are checked against ``MAX_MAP_CELLS`` before they are inflated; pickles are
+    refused.
+
+    Raises
+    ------
+    MapFileError
+        If the file cannot be read, is not a regular file or is above ``MAX_FILE_BYTES``.
+    MapFormatError
+        If it is not a map written by ``save_npz``.
+
+    Examples
+    --------
+    See ``save_npz``.
+    """
     data = _read_bounded(path, MAX_FILE_BYTES, "map")
     try:
         with zipfile.ZipFile(io_bytes(data)) as archive:
@@ -438,17 +669,60 @@ def load_npz(path) -> GridMap:
         raise MapFormatError(f"{path}: not a taichi_match .npz map ({type(exc).__name__}: {exc})") from exc
 
 
-def save_npy(grid: GridMap, path):
+def save_npy(grid: GridMap, path: PathLike) -> None:
     """Save the OccupancyGrid-style int8 array (-1 unknown, 0..100, row 0 at the lowest y) in a .npy
-    file; the resolution and origin are not stored (use ``save_npz`` to keep them)."""
+    file; the resolution and origin are not stored (use ``save_npz`` to keep them).
+
+    Raises
+    ------
+    MapFileError
+        If the file cannot be written.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> from taichi_match.io import load_npy, save_npy
+    >>> grid = GridMap([[0.25, np.nan], [1.0, 0.0]], 0.05, origin=(1.0, 2.0))
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     save_npy(grid, os.path.join(folder, "map.npy"))
+    ...     back = load_npy(os.path.join(folder, "map.npy"), resolution=0.05, origin=(1.0, 2.0))
+    >>> back.prob.tolist(), back.corner_pose
+    ([[0.25, nan], [1.0, 0.0]], (1.0, 2.0, 0.0))
+    """
     try:
         np.save(path, to_occupancy_grid(grid)[0])
     except OSError as exc:
         raise MapFileError(f"cannot write {path!r}: {exc.strerror or exc}") from exc
 
 
-def load_npy(path, *, resolution, origin=(0.0, 0.0, 0.0)) -> GridMap:
-    """Load a .npy array: int8 occupancy percent (-1 unknown), or float probabilities (NaN unknown)."""
+def load_npy(path: PathLike, *, resolution: float, origin: npt.ArrayLike = (0.0, 0.0, 0.0)) -> GridMap:
+    """Load a .npy array: int8 occupancy percent (-1 unknown), or float probabilities (NaN unknown).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A .npy file holding a 2-D array, row 0 at the lowest y; integer arrays are read as
+        OccupancyGrid percent (``from_occupancy_grid``), float arrays as probabilities.
+    resolution : float
+        Cell side, metres (not stored in the file).
+    origin : (x, y) or (x, y, yaw)
+        Corner pose of cell (0, 0) (not stored in the file).
+
+    Raises
+    ------
+    MapFileError
+        If the file cannot be read, is not a regular file or is above ``MAX_FILE_BYTES``.
+    MapFormatError
+        If it is not a NumPy array file, or holds values out of range.
+    InvalidMapError
+        If a float array is not a valid ``GridMap``.
+
+    Examples
+    --------
+    See ``save_npy``.
+    """
     data = _read_bounded(path, MAX_FILE_BYTES, "map")
     try:
         arr = np.load(io_bytes(data), allow_pickle=False)
@@ -459,9 +733,33 @@ def load_npy(path, *, resolution, origin=(0.0, 0.0, 0.0)) -> GridMap:
     return GridMap(arr, resolution, origin)
 
 
-def load_map(path, **overrides) -> GridMap:
+def load_map(path: PathLike, **overrides: Any) -> GridMap:
     """Any supported map file by its extension: .yaml/.yml (map_server), .npz, or .npy (which needs
-    ``resolution=`` and optionally ``origin=``)."""
+    ``resolution=`` and optionally ``origin=``).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The map file.
+    **overrides
+        For a YAML, ``read_ros_map``'s keyword arguments; for a .npy, ``resolution`` and
+        ``origin``; ignored for a .npz.
+
+    Raises
+    ------
+    MapFormatError
+        For another extension, or a .npy without ``resolution``; and as the reader it calls.
+
+    Examples
+    --------
+    See the module docstring; a .npy needs its geometry:
+
+    >>> from taichi_match.io import load_map
+    >>> load_map("scan.npy")
+    Traceback (most recent call last):
+        ...
+    taichi_match._errors.MapFormatError: scan.npy: a .npy map needs its resolution (and origin) given separately
+    """
     ext = os.path.splitext(str(path))[1].lower()
     if ext in (".yaml", ".yml"):
         return read_ros_map(path, **overrides)

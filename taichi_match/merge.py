@@ -12,6 +12,7 @@ pose 66 % of A's occupied cells stay occupied, all of them with "max").
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from ._errors import InvalidMapError, InvalidOptionError, InvalidPoseError
 from ._grid import GridMap
@@ -25,8 +26,30 @@ FUSIONS = ("max", "log-odds")
 _CLIP = 1e-3        # probabilities are clipped to [1e-3, 1 - 1e-3] before log-odds
 
 
-def sample(grid: GridMap, points):
-    """The probability of the cell each map-frame point (..., 2) falls in; NaN outside or unknown."""
+def sample(grid: GridMap, points: npt.ArrayLike) -> np.ndarray:
+    """The probability of the cell each map-frame point (..., 2) falls in; NaN outside or unknown.
+
+    Parameters
+    ----------
+    grid : GridMap
+        The map.
+    points : array_like, shape (..., 2)
+        (x, y) in the map's frame, metres.
+
+    Returns
+    -------
+    numpy.ndarray, shape (...)
+        ``grid.prob`` at the cell each point falls in (eq. 3, floor), NaN outside the grid.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> from taichi_match.merge import sample
+    >>> grid = GridMap([[0.0, 1.0], [np.nan, 0.5]], 1.0)
+    >>> sample(grid, [[1.5, 0.2], [0.5, 1.5], [1.9, 1.9], [-0.1, 0.5]]).tolist()
+    [1.0, nan, 0.5, nan]
+    """
     rows, cols = grid.cell_of(points)
     h, w = grid.shape
     inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
@@ -35,7 +58,8 @@ def sample(grid: GridMap, points):
     return out
 
 
-def merge_maps(a: GridMap, b: GridMap, pose_a2b, *, resolution=None, fusion: str = "max") -> GridMap:
+def merge_maps(a: GridMap, b: GridMap, pose_a2b: npt.ArrayLike, *, resolution: float | None = None,
+               fusion: str = "max") -> GridMap:
     """One map in A's frame covering both maps, B placed by ``pose_a2b`` (r_A2B).
 
     Each cell of the result is axis-aligned in A's frame, at A's resolution unless given. With
@@ -44,7 +68,54 @@ def merge_maps(a: GridMap, b: GridMap, pose_a2b, *, resolution=None, fusion: str
     cell stays a wall); with "log-odds" A's and B's cells at its centre, p = sigmoid(logit(p_A) +
     logit(p_B)) where both are known, the update of an occupancy grid with independent
     measurements and a prior of 1/2 (see the module docstring). Where one map is known it is
-    kept; where neither is, the cell stays unknown.
+    kept (with "log-odds", clipped to [0.001, 0.999]); where neither is, the cell stays unknown.
+
+    Parameters
+    ----------
+    a, b : GridMap
+        The two maps, each in its own frame.
+    pose_a2b : array_like, shape (3,)
+        r_A2B = (x, y, theta): B's frame in A's, metres and radians (a match's ``pose``).
+    resolution : float, optional
+        Cell side of the result, metres; default A's.
+    fusion : {"max", "log-odds"}
+        How a cell known in both maps is fused.
+
+    Returns
+    -------
+    GridMap
+        Axis-aligned in A's frame (yaw 0), its cell boundaries on A's where A is axis-aligned,
+        covering the bounding box of both maps.
+
+    Raises
+    ------
+    InvalidMapError
+        If ``a`` or ``b`` is not a ``GridMap``.
+    InvalidOptionError
+        For an unknown ``fusion`` or a ``resolution`` that is not a finite number > 0.
+    InvalidPoseError
+        If ``pose_a2b`` is not three finite numbers, or puts B so far away that the result would
+        exceed ``MAX_MAP_CELLS`` cells.
+
+    Examples
+    --------
+    A sees free space everywhere; B, placed 1 m further along x, sees a wall across its row 10,
+    also where A saw free space:
+
+    >>> import numpy as np
+    >>> from taichi_match import GridMap
+    >>> from taichi_match.merge import merge_maps
+    >>> a = GridMap(np.zeros((20, 20)), 0.1)
+    >>> prob_b = np.zeros((20, 20))
+    >>> prob_b[10, :] = 1.0
+    >>> b = GridMap(prob_b, 0.1)
+    >>> merged = merge_maps(a, b, (1.0, 0.0, 0.0))
+    >>> merged.shape, merged.extent
+    ((20, 30), (0.0, 3.0, 0.0, 2.0))
+    >>> merged.prob[10, ::5].tolist()           # A only, overlap, B only: the wall is kept
+    [0.0, 0.0, 1.0, 1.0, 1.0, 1.0]
+    >>> merge_maps(a, b, (1.0, 0.0, 0.0), fusion="log-odds").prob[10, ::5].round(3).tolist()
+    [0.001, 0.001, 0.5, 0.5, 0.999, 0.999]
     """
     if fusion not in FUSIONS:
         raise InvalidOptionError(f"fusion must be one of {FUSIONS}; got {fusion!r}")

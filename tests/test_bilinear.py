@@ -6,7 +6,8 @@ import pytest
 from scipy import differentiate, ndimage
 
 from taichi_match import GridMap, Matcher, MatchOptions
-from taichi_match._prepared import PreparedMap, make_engine
+from taichi_match._engines import make_engine
+from taichi_match._prepared import PreparedMap
 from taichi_match.scenes import corridor
 
 
