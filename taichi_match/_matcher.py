@@ -21,13 +21,13 @@ from ._covariance import calibrate, centroid_metric, covariance_floor, covarianc
 from ._descent import descend
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap
-from ._taichi import check_not_forked
 from ._options import MatchOptions
 from ._prepared import PreparedMap
 from ._result import MatchResult
-from ._search import RUNNER_UP_FRACTION, SearchOptions, search
 from ._se2 import as_pose, wrap_angle
+from ._search import RUNNER_UP_FRACTION, SearchOptions, search
 from ._status import MESSAGES, Status
+from ._taichi import check_not_forked
 from ._verdict import compare_walls, evidence, placed_walls
 
 __all__ = ["Matcher", "match"]
@@ -49,6 +49,30 @@ class Matcher:
     """A reusable matcher: prepared maps are cached per (map, blur) and the kernels compile once.
 
     Use one matcher in a loop that matches many pairs; maps of any size share the compiled kernel.
+    Thread-safe (Taichi's launches are serialised); a process forked after its first match
+    cannot use it (``EngineError``: start workers with "spawn").
+
+    Parameters
+    ----------
+    options : MatchOptions, optional
+        The settings of every match; the defaults without it.
+    **overrides
+        Fields of ``MatchOptions`` replacing those of ``options``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from taichi_match import GridMap, Matcher
+    >>> prob = np.full((80, 100), np.nan)
+    >>> prob[5:75, 5:95] = 0.0
+    >>> prob[5:75, [5, 94]] = 1.0
+    >>> prob[[5, 74], 5:95] = 1.0
+    >>> prob[30:50, 40:42] = 1.0
+    >>> room = GridMap(prob, resolution=0.05)
+    >>> matcher = Matcher(levels=2)
+    >>> results = [matcher.match(room, room, guess) for guess in [(0.1, 0.0, 0.0), (0.0, -0.1, 0.02)]]
+    >>> [r.accepted for r in results]
+    [True, True]
     """
 
     def __init__(self, options: Optional[MatchOptions] = None, **overrides):
@@ -157,13 +181,52 @@ _DEFAULT = {}
 def match(a: GridMap, b: GridMap, initial_pose=None, *, search_window=None, **options) -> MatchResult:
     """Find the pose r_A2B of map B in map A near ``initial_pose`` (the paper's method).
 
-    Without ``initial_pose`` a search over every relative pose where the maps overlap finds one
-    first (``_search``, a branch and bound over a lattice of poses at 0.2 m); with
-    ``search_window=(metres, radians)`` a search within that window around ``initial_pose``. The
-    best pose found is refined; ``hypotheses`` lists it with the distinct runner-ups.
-    ``options`` are fields of ``MatchOptions`` (blur, prior_weight, rotation_scale, step, ...).
-    Non-convergence and a missing overlap are reported in the result (``converged``, ``status``,
-    ``message``), not raised. For many matches, reuse a ``Matcher``.
+    Parameters
+    ----------
+    a, b : GridMap
+        The maps; r_A2B maps B's frame into A's (conventions in ``taichi_match._grid``).
+    initial_pose : array_like of 3 floats, optional
+        The guess (x, y, theta) in metres and radians, which the prior of eq. (7)-(8) keeps the
+        answer near. Without it a search over every relative pose where the maps overlap finds
+        one first (``_search``: a branch and bound over a lattice of poses at 0.2 m).
+    search_window : (float, float), optional
+        (metres, radians): search within this window around ``initial_pose`` first.
+    **options
+        Fields of ``MatchOptions`` (``blur``, ``prior_weight``, ``levels``, ...).
+
+    Returns
+    -------
+    MatchResult
+        The pose, its covariance (``calibrated_covariance`` for a pose graph) and the verdict
+        ``accepted``. Non-convergence and a missing overlap are reported in it (``converged``,
+        ``status``, ``message``), not raised. After a search, ``hypotheses`` lists the best pose
+        found, which was refined, with its distinct runner-ups.
+
+    Raises
+    ------
+    InvalidMapError, InvalidPoseError, InvalidOptionError
+        For maps that are not ``GridMap``, a pose that is not three finite numbers, or an unknown
+        or out-of-range option.
+
+    See Also
+    --------
+    Matcher : the same, reusing prepared maps across matches (for loops).
+    match_many : many pairs, optionally over worker processes.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from taichi_match import GridMap, match
+    >>> prob = np.full((80, 100), np.nan)             # 4 m x 5 m at 0.05 m, unknown outside
+    >>> prob[5:75, 5:95] = 0.0                        # free inside
+    >>> prob[5:75, [5, 94]] = 1.0                     # walls
+    >>> prob[[5, 74], 5:95] = 1.0
+    >>> prob[30:50, 40:42] = 1.0                      # a pillar breaks the symmetry
+    >>> room = GridMap(prob, resolution=0.05)
+    >>> shifted = GridMap(prob, resolution=0.05, origin=(0.3, -0.2))   # the same room, 0.3 m right, 0.2 m down
+    >>> result = match(room, shifted, initial_pose=(-0.2, 0.1, 0.02))
+    >>> result.accepted, np.round(result.pose[:2], 1).tolist()
+    (True, [-0.3, 0.2])
     """
     matcher = _DEFAULT.get("matcher")
     if matcher is None:

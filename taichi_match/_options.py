@@ -10,8 +10,8 @@ from typing import Literal, Optional
 import numpy as np
 
 from ._blur import BLUR_KINDS
-from ._errors import InvalidOptionError
 from ._engines import ENGINES
+from ._errors import InvalidOptionError
 
 __all__ = ["MatchOptions"]
 
@@ -29,6 +29,10 @@ PAPER_OPTIONS = dict(blur_kind="gaussian", blur=0.5, blur_growth=1.0, unknown_co
 class MatchOptions:
     """Settings of a match. Units: metres, radians; K in discrepancy units per metre.
 
+    Frozen: make a variant with ``replace`` (or pass fields as keyword arguments to ``match``).
+
+    Attributes
+    ----------
     blur : width of the blur (sec. 3.2) on the given maps, metres: the envelope's or the Gaussian's
         standard deviation, or the ramp's length for ``blur_kind="ramp"``.
     blur_kind : "envelope" (the default: the envelope discrepancy of ``_envelope``, walls of each
@@ -77,6 +81,18 @@ class MatchOptions:
         covariance, the central difference of gradients one step either side (7 poses).
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
+
+    Examples
+    --------
+    >>> from taichi_match import MatchOptions
+    >>> MatchOptions().method, MatchOptions(interpolation="nearest", optimizer="bfgs").method
+    ('newton', 'bfgs')
+    >>> MatchOptions.paper().blur_kind
+    'gaussian'
+    >>> MatchOptions(levels=0)
+    Traceback (most recent call last):
+    ...
+    taichi_match._errors.InvalidOptionError: levels must be an integer in 1..8; got 0
     """
 
     blur: float = 0.1

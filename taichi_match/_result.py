@@ -17,6 +17,8 @@ __all__ = ["MatchResult"]
 class MatchResult:
     """The outcome of a match, in the style of ``scipy.optimize.OptimizeResult``.
 
+    Attributes
+    ----------
     pose : r_A2B = (x, y, theta), maps B's frame into A's; theta in (-pi, pi].
     covariance : 3x3 in (x, y, theta) units, ``covariance_scale * H(e)^-1`` with degenerate
         directions given a very large variance (eq. 11).
@@ -43,6 +45,25 @@ class MatchResult:
         poses with their scores (``_search.Hypothesis``), best first; the best was refined into
         ``pose``. Empty without a search. ``search_complete``: None without a search, else whether
         it ran to the end (``_search.SearchOptions.max_nodes``).
+
+    Examples
+    --------
+    A room matched to itself from a guess a few cells off (see ``match``):
+
+    >>> import numpy as np
+    >>> from taichi_match import GridMap, match
+    >>> prob = np.full((80, 100), np.nan)
+    >>> prob[5:75, 5:95] = 0.0
+    >>> prob[5:75, [5, 94]] = 1.0
+    >>> prob[[5, 74], 5:95] = 1.0
+    >>> prob[30:50, 40:42] = 1.0
+    >>> room = GridMap(prob, resolution=0.05)
+    >>> result = match(room, room, initial_pose=(0.1, -0.05, 0.03))
+    >>> result.status.name, result.accepted, result.converged
+    ('STEP', True, True)
+    >>> sd = np.sqrt(np.diag(result.calibrated_covariance))    # metres, metres, radians
+    >>> bool(np.all(sd < 0.05)), bool(np.all(np.abs(result.pose) < 0.025))
+    (True, True)
     """
 
     pose: np.ndarray

@@ -45,7 +45,7 @@ def _demo(args):
             print(f"picture       {args.plot}")
         except ImportError as exc:
             print(f"picture       not written: {exc}")
-    return 0 if res.accepted else 1
+    return EXIT_OK if res.accepted else EXIT_NOT_ACCEPTED
 
 
 def _reproduce(args):
@@ -57,7 +57,7 @@ def _reproduce(args):
     print(open(os.path.join(args.out, "report.md")).read().split("## Figures")[0].rstrip())
     print(f"\nwrote {os.path.join(args.out, 'report.md')}, results.json, config.json and "
           f"{len(out['results']['figures'])} figures in {out['results']['seconds']:.0f} s")
-    return 0
+    return EXIT_OK
 
 
 EXIT_OK, EXIT_NOT_ACCEPTED, EXIT_BAD_INPUT = 0, 1, 2
@@ -324,6 +324,11 @@ def _merge(args):
     write_ros_map(merged, output, mode=args.mode)
     print(f"wrote {args.output}: {merged.shape[0]} x {merged.shape[1]} cells at {merged.resolution} m, "
           f"origin {merged.origin}")
+    if args.plot:
+        from taichi_match import plots
+
+        plots.save_merge(args.plot, a, b, merged, title=f"{args.map_a} + {args.map_b}")
+        print(f"picture {args.plot}")
     return EXIT_OK
 
 
@@ -375,7 +380,7 @@ def _slam(args):
         print("taichi-match: no scan match was accepted: the trajectory is the odometry's (see report.md; "
               "--resolution and --max-ray set what a scan can show)", file=sys.stderr)
         return EXIT_NOT_ACCEPTED
-    return 0
+    return EXIT_OK
 
 
 def _demo_slam(args):
@@ -411,7 +416,7 @@ def _demo_slam(args):
             print(f"picture {args.plot}")
         except ImportError as exc:
             print(f"picture not written: {exc}")
-    return 0
+    return EXIT_OK
 
 
 def _progress(label, total, enabled, unit="scan"):
@@ -560,6 +565,8 @@ def main(argv=None):
     merge.add_argument("--fusion", choices=("max", "log-odds"), default="max",
                        help="where both maps know a cell: the larger probability, so an obstacle either map "
                             "saw stays one (default), or the evidence added in log-odds")
+    merge.add_argument("--plot", metavar="PNG", help="also write A, B and the merged map side by side (.png, .pdf "
+                                                      "or .svg; needs matplotlib)")
     merge.set_defaults(func=_merge)
     demo_slam = sub.add_parser("demo-slam", help="the mapping loop on a simulated robot, against its exact truth "
                                                  "(needs gtsam: pip install 'taichi-match[slam]')")
@@ -601,7 +608,7 @@ def main(argv=None):
     from taichi_match import TaichiMatchError
 
     try:
-        if args.command == "align" and args.plot:
+        if args.command in ("align", "merge") and args.plot:
             _check_picture(args)
         return args.func(args)
     except KeyboardInterrupt:

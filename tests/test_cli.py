@@ -97,6 +97,19 @@ def test_merge_writes_a_map_in_as_frame(pair, tmp_path):
     assert x0 <= ax0 and y0 <= ay0 and x1 >= ax1 and y1 >= ay1
 
 
+def test_merge_plot_writes_the_picture_and_a_bad_one_is_bad_input_before_any_work(pair, tmp_path, capsys):
+    a, b, truth = pair
+    out, picture = tmp_path / "merged.yaml", tmp_path / "merged.png"
+    args = ["merge", str(a), str(b), "--pose", *map(str, truth), "-o", str(out)]
+    assert main([*args, "--plot", str(picture)]) == 0
+    assert picture.stat().st_size > 10_000 and picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for bad in (str(tmp_path / "m.jpg"), str(tmp_path / "no" / "m.png"), str(a)):
+        capsys.readouterr()
+        assert main([*args, "-o", str(tmp_path / "other.yaml"), "--plot", bad]) == 2
+        assert "taichi-match: error:" in capsys.readouterr().err
+        assert not (tmp_path / "other.yaml").exists()
+
+
 def test_merge_fuses_in_log_odds_and_respects_unknown():
     a = io.GridMap(np.array([[0.8, np.nan, 0.3, np.nan]]), 1.0)
     b = io.GridMap(np.array([[0.8, 0.6, np.nan, np.nan]]), 1.0)
