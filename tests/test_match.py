@@ -175,13 +175,20 @@ def test_evaluation_counts_stay_small_on_a_fixed_problem(corridor_map, matcher):
 
 
 def test_calibrated_covariance_uses_the_published_model(corridor_map, matcher):
-    from taichi_match import CALIBRATED_COVARIANCE_SCALE
-    from taichi_match._covariance import RESIDUAL_EXPONENT, RESIDUAL_MIN
-
     res = matcher.match(corridor_map, corridor_map, (0.1, 0.2, 0.05), covariance_scale=4.0)
+    # the README's model with the README's numbers (not the code's constants): q is e per wall
+    # compared, and the covariance is 4.25 * max(q, 0.01)**0.55 * H(e)^-1 + plateau, H(e)^-1 being
+    # the covariance without its scale
     assert res.residual == pytest.approx(res.discrepancy / res.evidence.walls_compared)
-    factor = CALIBRATED_COVARIANCE_SCALE * max(res.residual, RESIDUAL_MIN) ** RESIDUAL_EXPONENT
-    assert np.allclose(res.calibrated_covariance, res.covariance / 4.0 * factor + res.covariance_floor)
+    assert np.allclose(res.calibrated_covariance,
+                       4.25 * max(res.residual, 0.01) ** 0.55 * res.covariance / 4.0 + res.covariance_floor)
+    # and H(e)^-1 is the inverse of the information where it has any: given x (the corridor's
+    # direction, floored), the covariance of (y, theta) is the inverse of the information's
+    # (y, theta) block (the Schur complement; the marginal is not, as the degenerate direction
+    # carries a little theta: information[0, 2] != 0)
+    cov = res.covariance / 4.0
+    given_x = cov[1:, 1:] - np.outer(cov[1:, 0], cov[0, 1:]) / cov[0, 0]
+    assert np.allclose(given_x, np.linalg.inv(res.information[1:, 1:]), rtol=1e-6, atol=0)
     # a map against itself: every wall sits at the same place in its cell, e is flat over a whole
     # cell, and the floor is an error spread evenly over it (sd 1/sqrt(12) cell) at B's centroid
     floor = res.covariance_floor

@@ -71,7 +71,8 @@ def test_minimises_a_smooth_function_to_scipys_answer():
     ref = optimize.minimize(f, np.array([2.0, 1.5, -1.0]), method="BFGS", options={"gtol": 1e-10})
     assert res.status in (Status.GRADIENT, Status.STEP)
     assert np.allclose(res.z, ref.x, atol=1e-5)
-    assert res.launches < 20
+    # measured (deterministic): 6 accepted steps, no rejection; launches = the start + 6 trials
+    assert (res.nit, res.launches) == (6, 1 + 6), (res.nit, res.launches)
 
 
 def test_reports_the_budget_and_a_stuck_start():
@@ -107,3 +108,62 @@ def test_the_prior_curvature_is_that_of_its_touching_quadratic(rng):
         assert np.isclose(touching(r), prior(r, r0, k, length)[0])
         ref = differentiate.hessian(touching, r).ddf
         assert np.allclose(prior_hessian(r, r0, k, length, min_norm=1e-3), ref, rtol=1e-6, atol=1e-6)
+
+
+MINIMUM = np.array([0.7, -1.3, 0.4])
+_BASIS, _ = np.linalg.qr(np.array([[1.0, 2.0, 0.5], [-1.0, 0.3, 2.0], [0.4, -1.0, 1.0]]))
+Q = (_BASIS * [1.0, 4.0, 9.0]) @ _BASIS.T            # (z - m)^T Q (z - m): eigenvalues 1, 4, 9
+
+
+class Quadratic:
+    """The convex quadratic with its exact derivatives; remembers the points evaluated."""
+
+    def __init__(self):
+        self.points = []
+
+    def __call__(self, z):
+        self.points.append(np.array(z, dtype=np.float64))
+        d = z - MINIMUM
+        return float(d @ Q @ d), 2.0 * Q @ d, 2.0 * Q, None
+
+
+def test_one_newton_step_solves_a_quadratic_inside_the_region():
+    """Newton's step on a quadratic with its exact Hessian lands on the minimum; the gradient there
+    is zero: 1 accepted step, the start and 1 trial launched."""
+    evaluate = Quadratic()
+    res = minimize_newton(evaluate, MINIMUM + [0.1, -0.05, 0.02], radius=1.0, max_radius=1.0, xtol=1e-9,
+                          gtol=1e-9, max_launches=50)
+    assert res.status == Status.GRADIENT and res.nit == 1 and res.launches == 2 and len(evaluate.points) == 2
+    assert np.allclose(res.z, MINIMUM, rtol=0, atol=1e-12)
+    assert np.allclose(res.hessian, 2.0 * Q) and res.fun == pytest.approx(0.0, abs=1e-24)
+
+
+def test_a_zero_gradient_at_the_start_stops_at_once():
+    evaluate = Quadratic()
+    res = minimize_newton(evaluate, MINIMUM, radius=1.0, max_radius=1.0, xtol=1e-9, gtol=1e-9, max_launches=50)
+    assert res.status == Status.GRADIENT and res.nit == 0 and res.launches == 1
+    assert np.array_equal(res.z, MINIMUM)
+    first = evaluate(MINIMUM)
+    res = minimize_newton(evaluate, MINIMUM, radius=1.0, max_radius=1.0, xtol=1e-9, gtol=1e-9, max_launches=50,
+                          first=first)
+    assert res.status == Status.GRADIENT and res.launches == 0 and len(evaluate.points) == 2
+
+
+def test_every_trial_lies_within_the_largest_trust_region():
+    """From 11.5 units away with max_radius 0.5: every point evaluated lies within max_radius (plus the
+    secular equation's 1e-3 tolerance) of the centre it was tried from, the best point so far (the
+    driver moves only on a decrease); the cap is reached (else this proves nothing); the minimum
+    is found."""
+    evaluate = Quadratic()
+    max_radius = 0.5
+    res = minimize_newton(evaluate, np.array([10.0, -7.0, 4.0]), radius=0.1, max_radius=max_radius, xtol=1e-9,
+                          gtol=1e-9, max_launches=200)
+    assert res.status in (Status.GRADIENT, Status.STEP) and np.allclose(res.z, MINIMUM, atol=1e-9)
+    values = [float((p - MINIMUM) @ Q @ (p - MINIMUM)) for p in evaluate.points]
+    distances = []
+    for k in range(1, len(evaluate.points)):
+        centre = evaluate.points[int(np.argmin(values[:k]))]
+        distances.append(np.linalg.norm(evaluate.points[k] - centre))
+    assert max(distances) <= max_radius * (1 + 2e-3)
+    assert sum(d >= max_radius * (1 - 2e-3) for d in distances) >= 20, distances
+    assert len(evaluate.points) == res.launches

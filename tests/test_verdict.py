@@ -7,12 +7,15 @@ import pytest
 import taichi_match as tm
 from conftest import rasterize, room_scene
 from taichi_match import GridMap, Matcher, MatchOptions
-from taichi_match._verdict import (AGREE_CELLS, CONFLICT_CELLS, MAX_CONFLICT, MAX_UNCERTAINTY_M, MIN_AGREEMENT,
-                                   MIN_WALLS, Evidence, WallDistance, compare_walls, evidence,
+from taichi_match._verdict import (AGREE_CELLS, CONFLICT_CELLS, Evidence, WallDistance, compare_walls, evidence,
                                    placed_walls)
 
 TRUTH = (0.15, -0.1, 0.05)
 RES = 0.05
+# The verdict's thresholds as the README documents them ("accepted: can this pose go into a pose
+# graph?"): at least 50 walls compared, agreement >= 0.5, conflict <= 0.14, uncertainty <= 0.05 m.
+# Written out here, not imported from _verdict, so that the tests hold the code to the documented rule.
+MIN_WALLS, MIN_AGREEMENT, MAX_CONFLICT, MAX_UNCERTAINTY_M = 50, 0.5, 0.14, 0.05
 
 
 @pytest.fixture(scope="module")
@@ -48,7 +51,7 @@ def random_walls(seed, shape=(120, 160), resolution=RES, origin=(-4.0, -3.0), se
 
 
 def accepted_by_thresholds(ev):
-    """The documented rule, restated: what ``Evidence.accepts(True)`` must say."""
+    """The README's rule with the README's numbers: what ``Evidence.accepts(True)`` must say."""
     return (ev.walls_compared >= MIN_WALLS and ev.wall_agreement >= MIN_AGREEMENT
             and ev.wall_conflict <= MAX_CONFLICT and ev.uncertainty <= MAX_UNCERTAINTY_M)
 
@@ -247,6 +250,20 @@ def test_hand_values_of_the_evidence(dy, compared, agreement, conflict):
     assert ev.accepts(True) == (dy in (0, 1, 2))          # 60 walls >= MIN_WALLS
     assert not ev.accepts(False)
     assert AGREE_CELLS == 2.0 and CONFLICT_CELLS == 4.0
+
+
+@pytest.mark.parametrize("walls, agreement, conflict, uncertainty, accepted", [
+    (50, 0.5, 0.14, 0.05, True),             # every threshold met exactly: accepted
+    (49, 0.5, 0.14, 0.05, False),            # one wall too few
+    (50, 0.499, 0.14, 0.05, False),          # agreement just short
+    (50, 0.5, 0.141, 0.05, False),           # conflict just over
+    (50, 0.5, 0.14, 0.0501, False),          # uncertainty just over
+    (5000, 1.0, 0.0, 0.0, True),
+    (5000, 1.0, 0.0, np.inf, False),
+])
+def test_the_documented_thresholds_at_their_edges(walls, agreement, conflict, uncertainty, accepted):
+    ev = Evidence(walls, agreement, conflict, uncertainty)
+    assert ev.accepts(True) is accepted and ev.accepts(False) is False
 
 
 def test_walls_on_unknown_cells_are_not_compared():
