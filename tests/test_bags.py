@@ -19,7 +19,8 @@ T = STORE.types
 
 def header(t, frame):
     sec = int(math.floor(t))
-    return T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9))),
+    stamp = T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9)))
+    return T["std_msgs/msg/Header"](stamp=stamp,
                                     frame_id=frame)
 
 
@@ -27,7 +28,8 @@ def scan_msg(scan):
     n = len(scan.ranges)
     step = (scan.angles[-1] - scan.angles[0]) / (n - 1)
     return T["sensor_msgs/msg/LaserScan"](
-        header=header(scan.timestamp + 0.25, "laser"), angle_min=float(scan.angles[0]), angle_max=float(scan.angles[-1]),
+        header=header(scan.timestamp + 0.25, "laser"),
+        angle_min=float(scan.angles[0]), angle_max=float(scan.angles[-1]),
         angle_increment=float(step), time_increment=0.0, scan_time=0.0, range_min=0.05,
         range_max=float(scan.max_range), ranges=np.asarray(scan.ranges, dtype=np.float32),
         intensities=np.zeros(0, dtype=np.float32))
@@ -44,7 +46,8 @@ def odom(t, x, y, yaw):
     return T["nav_msgs/msg/Odometry"](
         header=header(t, "odom"), child_frame_id="base_link",
         pose=geometry["PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-        twist=geometry["TwistWithCovariance"](twist=geometry["Twist"](linear=zero, angular=zero), covariance=np.zeros(36)))
+        twist=geometry["TwistWithCovariance"](twist=geometry["Twist"](linear=zero, angular=zero),
+                                              covariance=np.zeros(36)))
 
 
 def write_bag(path, log, *, ros1=False, scans=True, odometry=True):

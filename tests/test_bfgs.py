@@ -83,7 +83,7 @@ def test_every_step_and_every_trial_stays_within_max_step():
     iterate it started from."""
     z0, max_step = np.array([10.0, -7.0, 4.0]), 0.5
     kwargs = dict(max_step=max_step, xtol=1e-9, gtol=1e-9)
-    previous, steps = None, []
+    previous, previous_points, steps = None, [], []
     for k in range(40):
         calls = Recorded(quadratic)
         res = minimize_bfgs(calls, z0, max_iterations=k, **kwargs)

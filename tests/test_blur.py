@@ -87,6 +87,7 @@ def test_bad_kind():
 @pytest.mark.parametrize("shape, sigma", [((480, 480), 20.0), ((37, 501), 7.3), ((5, 3), 20.0), ((60, 60), 2.0)])
 def test_the_fft_gaussian_equals_scipys(rng, shape, sigma):
     from scipy import ndimage
+
     from taichi_match._blur import gaussian_filter
 
     stack = rng.random((2,) + shape)

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-
 from conftest import random_map
+
 from taichi_match import GridMap, InvalidMapError, InvalidPoseError, discrepancy
 
 
@@ -41,12 +41,15 @@ def boundary_ties(a, b, poses, tol=1e-4):
     centres = b.cell_centres(rows, cols)
     ties = []
     ca, sa = np.cos(a.yaw), np.sin(a.yaw)
+
+    def near(w):
+        return np.abs(w - np.round(w)) < tol
+
     for x, y, t in poses:
         px = np.cos(t) * centres[:, 0] - np.sin(t) * centres[:, 1] + x - a.origin[0]
         py = np.sin(t) * centres[:, 0] + np.cos(t) * centres[:, 1] + y - a.origin[1]
         u = (ca * px + sa * py) / a.resolution
         v = (-sa * px + ca * py) / a.resolution
-        near = lambda w: np.abs(w - np.round(w)) < tol
         ties.append(int(np.count_nonzero(near(u) | near(v))))
     return np.array(ties)
 

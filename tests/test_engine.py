@@ -7,10 +7,9 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from conftest import random_map
-from taichi_match import GridMap, Matcher, discrepancy
-from taichi_match import _kernels, _launch
+
+from taichi_match import GridMap, Matcher, _kernels, _launch, discrepancy
 
 
 def run_python(code, timeout=300):

@@ -7,15 +7,22 @@ import warnings
 
 import numpy as np
 import pytest
+from conftest import rasterize, room_scene
 
 import taichi_match as tm
-from conftest import rasterize, room_scene
-from taichi_match import (GridMap, InvalidOptionError, Matcher, MatchOptions, PreparedMap, inverse, make_engine,
-                          transform_points)
+from taichi_match import (
+    GridMap,
+    InvalidOptionError,
+    Matcher,
+    MatchOptions,
+    PreparedMap,
+    inverse,
+    make_engine,
+    transform_points,
+)
 from taichi_match._envelope import SERIAL_BELOW, EnvelopeEngine, NumpyEnvelope
-from taichi_match._grid import trinary
+from taichi_match._grid import trinary, trinary_code
 from taichi_match._pyramid import coarsen, halve_code
-from taichi_match._grid import trinary_code
 
 TRUTH = (0.15, -0.1, 0.05)
 
@@ -545,5 +552,6 @@ def test_known_cells_moments_equal_the_listed_cells(rng):
         centres = grid.cell_centres(*np.nonzero(grid.known))
         centroid = centres.mean(axis=0)
         np.testing.assert_allclose(prepared.centroid, centroid, rtol=1e-12, atol=1e-12)
-        assert prepared.spread == pytest.approx(max(np.sqrt(np.mean(np.sum((centres - centroid) ** 2, 1))), 0.05), rel=1e-12)
+        rms = np.sqrt(np.mean(np.sum((centres - centroid) ** 2, 1)))
+        assert prepared.spread == pytest.approx(max(rms, 0.05), rel=1e-12)
         assert prepared.radius == pytest.approx(max(np.sqrt(np.mean(np.sum(centres**2, 1))), 0.05), rel=1e-12)

@@ -5,8 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from taichi_match import GridMap, MapFileError, MapFormatError
-from taichi_match import io
+from taichi_match import GridMap, MapFileError, MapFormatError, io
 
 SHARED_MAPS = Path(__file__).resolve().parents[2] / "shared" / "maps"
 

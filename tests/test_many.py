@@ -22,7 +22,8 @@ def tasks():
     world = floor_plan(0)
     h, w = world.shape
     windows = [(0, h // 2 + 40, 0, w // 2 + 40), (h // 2 - 40, h, 0, w // 2 + 40),
-               (0, h // 2 + 40, w // 2 - 40, w), (h // 2 - 40, h, w // 2 - 40, w), (h // 4, 3 * h // 4, w // 4, 3 * w // 4)]
+               (0, h // 2 + 40, w // 2 - 40, w), (h // 2 - 40, h, w // 2 - 40, w),
+               (h // 4, 3 * h // 4, w // 4, 3 * w // 4)]
     maps = crops(world, windows)
     rng = np.random.default_rng(3)
     out = []

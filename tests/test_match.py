@@ -2,10 +2,18 @@
 
 import numpy as np
 import pytest
-
 from conftest import rasterize, room_scene
-from taichi_match import (GridMap, InvalidMapError, InvalidOptionError, InvalidPoseError, Matcher, MatchOptions, Status,
-                          match)
+
+from taichi_match import (
+    GridMap,
+    InvalidMapError,
+    InvalidOptionError,
+    InvalidPoseError,
+    Matcher,
+    MatchOptions,
+    Status,
+    match,
+)
 from taichi_match.scenes import corridor
 
 
@@ -193,7 +201,8 @@ def test_calibrated_covariance_uses_the_published_model(corridor_map, matcher):
     # cell, and the floor is an error spread evenly over it (sd 1/sqrt(12) cell) at B's centroid
     floor = res.covariance_floor
     for axis in (0, 1):
-        assert 0.2 * corridor_map.resolution < np.sqrt(floor[axis, axis]) <= corridor_map.resolution / np.sqrt(12) + 1e-12
+        sd = np.sqrt(floor[axis, axis])
+        assert 0.2 * corridor_map.resolution < sd <= corridor_map.resolution / np.sqrt(12) + 1e-12
     # the corridor's direction keeps its huge variance
     assert len(res.degenerate) == 1 and res.calibrated_covariance[0, 0] > 1.0
 

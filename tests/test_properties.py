@@ -99,11 +99,12 @@ def overlapping_pairs(draw):
 def test_moving_both_maps_together_changes_nothing(pair, motion):
     """Move both grids by the same rigid motion T: e(T A, T B, T r T^-1) = e(A, B, r) exactly, for
     pairs that overlap (by construction, and at least MIN_OVERLAP cells: the 40 examples overlap by 8
-    to 163 cells, median 24; 12 of 52 generated are filtered out). Measured: both engines give bit-identical e and overlap before and
-    after the motion on every example. What the tolerance still allows: a cell of B whose centre
-    lies within 1e-4 cells of a cell boundary of A may floor either way (float32 cell coordinates
-    in the kernel have errors of ~1e-5 cells for coordinates of a few hundred cells), changing the
-    overlap by 1 and e by at most 1; plus float32 rounding of the sum (1e-6 per cell compared)."""
+    to 163 cells, median 24; 12 of 52 generated are filtered out). Measured: both engines give
+    bit-identical e and overlap before and after the motion on every example. What the tolerance
+    still allows: a cell of B whose centre lies within 1e-4 cells of a cell boundary of A may floor
+    either way (float32 cell coordinates in the kernel have errors of ~1e-5 cells for coordinates
+    of a few hundred cells), changing the overlap by 1 and e by at most 1; plus float32 rounding of
+    the sum (1e-6 per cell compared)."""
     a, b, pose = pair
     expected_e, expected_overlap, ties = _plain_eq6(a, b, pose)
     assume(expected_overlap >= MIN_OVERLAP)

@@ -9,8 +9,8 @@ import textwrap
 
 import numpy as np
 import pytest
-
 from conftest import rasterize, room_scene
+
 from taichi_match import MapFileError, io
 from taichi_match.cli import main
 
@@ -219,7 +219,8 @@ def test_an_image_that_is_a_fifo_or_a_device_is_refused_without_reading(tmp_path
     script = textwrap.dedent(f"""
         from taichi_match import io, MapFileError
         for image in ({str(tmp_path / "fifo.pgm")!r}, "/dev/zero", "/dev/urandom"):
-            (open({str(tmp_path / "m.yaml")!r}, "w")).write(f"image: {{image}}\\nresolution: 0.05\\norigin: [0, 0, 0]\\n")
+            meta = f"image: {{image}}\\nresolution: 0.05\\norigin: [0, 0, 0]\\n"
+            (open({str(tmp_path / "m.yaml")!r}, "w")).write(meta)
             try:
                 io.read_ros_map({str(tmp_path / "m.yaml")!r})
             except MapFileError as exc:
@@ -275,7 +276,8 @@ def test_hostile_map_files_raise_our_errors(tmp_path, case):
         png_file(tmp_path / "x.png", 2**20, 2**20, zlib.compress(bytes(20)))
         call = lambda: io.read_image(str(tmp_path / "x.png"))              # noqa: E731
     elif case in ("p2-range", "p2-text"):
-        (tmp_path / "x.pgm").write_bytes(b"P2\n2 2\n255\n0 255 300 1\n" if case == "p2-range" else b"P2\n2 2\n255\n0 a 3 1\n")
+        body = b"0 255 300 1\n" if case == "p2-range" else b"0 a 3 1\n"
+        (tmp_path / "x.pgm").write_bytes(b"P2\n2 2\n255\n" + body)
         call = lambda: io.read_image(str(tmp_path / "x.pgm"))              # noqa: E731
     elif case == "deep-origin":
         io.write_image(str(tmp_path / "x.pgm"), np.zeros((2, 2), np.uint8))

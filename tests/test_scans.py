@@ -16,7 +16,6 @@ from taichi_match._raycast import count_traversals_taichi
 from taichi_match.logs import Scan
 from taichi_match.scans import BeamCounts, SensorModel, _cells_of_segment, count_traversals, scans_to_grid, trinary
 
-
 # --- the cell traversal ----------------------------------------------------------------------------
 
 def exact_cells(u0, v0, u1, v1):

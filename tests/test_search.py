@@ -6,15 +6,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import rasterize, room_scene
 from scipy import ndimage
 
 from taichi_match import GridMap, InvalidOptionError, match
 from taichi_match._grid import trinary
-from taichi_match._search import RUNNER_UP_FRACTION, SearchOptions, _Lattice, _points, lattice_cells, search
 from taichi_match._se2 import compose, transform_points, wrap_angle
+from taichi_match._search import RUNNER_UP_FRACTION, SearchOptions, _Lattice, _points, lattice_cells, search
 from taichi_match.scenes import corridor
-
-from conftest import rasterize, room_scene
 
 
 def room_pair(pose, resolution=0.2):
@@ -288,8 +287,9 @@ def test_a_malformed_search_window_is_our_error(window):
         match(a, b, (0.4, -0.3, 0.6), search_window=window)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known limitation: B is A transposed (a mirror image across the diagonal), "
-                   "which no rigid pose maps onto A; the square room's walls fit but for a pillar and a stub, 13 % "
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="known limitation: B is A transposed (a mirror image across the diagonal), which "
+                   "no rigid pose maps onto A; the square room's walls fit but for a pillar and a stub, 13 % "
                    "of B's walls land on A's free space, under the verdict's 14 % (correct matches of real maps "
                    "reach 13.4 %), so the mirrored fit is accepted (docs/reliability.md)")
 def test_a_mirrored_room_is_not_accepted():

@@ -76,6 +76,7 @@ def test_kernel_stencil_gradient_and_hessian_against_scipy_on_the_numpy_oracle(s
 def test_the_stencil_launch_equals_the_numpy_oracle_at_the_25_poses(rng, a_yaw):
     # A large B with unknown cells and a yawed origin, A yawed or not, poses partly off A
     from conftest import random_map
+
     from taichi_match._prepared import PreparedMap
 
     a = random_map(rng, (260, 300), 0.05, (-7.0, -6.0, a_yaw))

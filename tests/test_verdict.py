@@ -3,12 +3,19 @@ evidence independent of how the pose was found, and hand values of the evidence.
 
 import numpy as np
 import pytest
+from conftest import rasterize, room_scene
 
 import taichi_match as tm
-from conftest import rasterize, room_scene
 from taichi_match import GridMap, Matcher, MatchOptions
-from taichi_match._verdict import (AGREE_CELLS, CONFLICT_CELLS, Evidence, WallDistance, compare_walls, evidence,
-                                   placed_walls)
+from taichi_match._verdict import (
+    AGREE_CELLS,
+    CONFLICT_CELLS,
+    Evidence,
+    WallDistance,
+    compare_walls,
+    evidence,
+    placed_walls,
+)
 
 TRUTH = (0.15, -0.1, 0.05)
 RES = 0.05
