@@ -59,7 +59,7 @@ CONFIGS = (
 
 def success_rows(matcher, grid, trials, seed):
     cells = []
-    for i, (name, ranges, centre_y, bands, noise) in enumerate(ROWS):
+    for i, (_name, ranges, centre_y, bands, noise) in enumerate(ROWS):
         rng = np.random.default_rng(seed + i)
         target_y = 0.0 if centre_y == 0.0 else parallel_corridors_y()
         errors = []

@@ -22,9 +22,9 @@ import time
 import numpy as np
 
 import taichi_match as tm
-from taichi_match.reproduce import git_revision
 from taichi_match._cost import gradient_stencil, hessian_stencil
 from taichi_match._engines import make_engine
+from taichi_match.reproduce import git_revision
 from taichi_match.scenes import corridor
 
 
@@ -89,7 +89,8 @@ def main():
     print()
     print("| kernel only (one launch) | taichi ms | numpy ms | speed-up |")
     print("|---|---|---|---|")
-    for i, label in enumerate(("13 poses (centre + gradient stencil)", "25 poses (Hessian stencil; taichi: stencil kernel)")):
+    for i, label in enumerate(("13 poses (centre + gradient stencil)",
+                               "25 poses (Hessian stencil; taichi: stencil kernel)")):
         print(f"| {label} | {1e3 * kernel['taichi'][i]:.2f} | {1e3 * kernel['numpy'][i]:.2f} "
               f"| {kernel['numpy'][i] / kernel['taichi'][i]:.1f}x |")
     print()

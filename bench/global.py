@@ -221,7 +221,8 @@ def main():
             f"cross-run pairs <= 10 s each, gdc_3 / gdc_3ne within 0.05 m of (0.10, 0.10, 0).", "",
             head, rule] + summary(rows, "crops", peer) + summary(rows, "laser submaps", peer)
     if cross:
-        text += ["", "| cross-run pair | pose (x, y, theta) | accepted | search complete | runner-up / best | check | seconds |"
+        text += ["", "| cross-run pair | pose (x, y, theta) | accepted | search complete | runner-up / best "
+                     "| check | seconds |"
                  + (" ORB + RANSAC |" if peer else ""),
                  "|---|---|---|---|---|---|---|" + ("---|" if peer else "")] + cross
     print("\n".join(text))

@@ -59,8 +59,8 @@ def per_match(checkout, matches):
         # first without valgrind, so that both counted runs find the kernels in Taichi's offline
         # cache (its key includes the thread count: a compile in one run alone would count)
         (Path(folder) / "workload.py").write_text(WORKLOAD)
-        subprocess.run(PIN + [sys.executable, f"{folder}/workload.py", "1"], env=dict(os.environ, PYTHONPATH=str(checkout)),
-                       check=True, capture_output=True)
+        subprocess.run(PIN + [sys.executable, f"{folder}/workload.py", "1"],
+                       env=dict(os.environ, PYTHONPATH=str(checkout)), check=True, capture_output=True)
         return (instructions(checkout, matches, folder) - instructions(checkout, 0, folder)) / matches
 
 

@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 
 import taichi_match as tm
-from taichi_match.reproduce import git_revision
 from taichi_match._cost import AffineMap, hessian_stencil
 from taichi_match._kernels import PAD, dense_kernels
 from taichi_match._launch import launch as _launch
 from taichi_match._taichi import kernel_lock, taichi
+from taichi_match.reproduce import git_revision
 from taichi_match.scenes import corridor, noisy_copy
 
 HERE = Path(__file__).resolve().parent

@@ -182,7 +182,8 @@ def main():
     parser.add_argument("--global", dest="whole", action="store_true",
                         help="only the ATE of a trajectory from the scans alone (ICP graph with revisits) against "
                              "the reference, and both maps' misfit")
-    parser.add_argument("--simulated", action="store_true", help="with --trajectory or --global: also the simulated run")
+    parser.add_argument("--simulated", action="store_true",
+                        help="with --trajectory or --global: also the simulated run")
     args = parser.parse_args()
     names = args.logs or sorted(p.name for p in LOGS.iterdir() if p.is_dir())
     if args.whole:
@@ -201,7 +202,8 @@ def main():
             ate_m, ate_deg, ours, theirs = global_check(log, ref)
             print(f"| {name} | {ate_m:.3f} / {ate_deg:.2f} | {ours:.2f} / {theirs:.2f} |", flush=True)
         return
-    head = "| log | triplets | ICP vs reference, consecutive scans (median mm / deg) | ICP cycle error (median mm / deg) |"
+    head = ("| log | triplets | ICP vs reference, consecutive scans (median mm / deg) "
+            "| ICP cycle error (median mm / deg) |")
     rule = "|---|---|---|---|"
     if args.trajectory:
         head += " scan-following trajectory vs reference, RPE10 rms m / deg (median m / deg) |"
@@ -213,7 +215,8 @@ def main():
 
         run = simulate_log(0)
         r = rpe10(scan_trajectory(run.log, run.truth), run.truth)
-        print(f"| simulated (exact truth) | - | - | - | {r[0]:.3f} / {r[1]:.2f} ({r[2]:.3f} / {r[3]:.2f}) |", flush=True)
+        print("| simulated (exact truth) | - | - | - "
+              f"| {r[0]:.3f} / {r[1]:.2f} ({r[2]:.3f} / {r[3]:.2f}) |", flush=True)
     for name in names:
         n, to_ref, cycle = check(name)
         row = f"| {name} | {n} | {1e3 * to_ref[0]:.1f} / {to_ref[1]:.3f} | {1e3 * cycle[0]:.1f} / {cycle[1]:.3f} |"

@@ -77,7 +77,8 @@ def loop_error(loop, reference):
 
 def wrong_loops(loops, reference):
     """Loop closures in the graph whose relative pose is off the reference's by > 0.2 m or > 1 degree."""
-    return [loop for loop in loops if loop["edge"] and (lambda m, d: m > 0.2 or abs(d) > 1.0)(*loop_error(loop, reference))]
+    return [loop for loop in loops
+            if loop["edge"] and (lambda m, d: m > 0.2 or abs(d) > 1.0)(*loop_error(loop, reference))]
 
 
 def _endpoints(log, scans, poses, max_range=20.0):
@@ -119,7 +120,8 @@ def ours_fits_better(loop, log, reference):
     reference poses: a judge of a "wrong" loop closure independent of both the matcher and the
     reference (on the simulated run, whose truth is exact, the truth fits better in 9 of 11)."""
     (scans_a, poses_a), (scans_b, poses_b) = loop["members"]
-    ours = _misfit(_endpoints(log, scans_a, poses_a), _endpoints(log, scans_b, [compose(loop["pose"], p) for p in poses_b]))
+    ours = _misfit(_endpoints(log, scans_a, poses_a),
+                   _endpoints(log, scans_b, [compose(loop["pose"], p) for p in poses_b]))
     theirs = _misfit(_endpoints(log, scans_a, reference[scans_a]), _endpoints(log, scans_b, reference[scans_b]))
     return ours < theirs
 
@@ -158,8 +160,8 @@ def spread_table(spreads):
              "|---|---|---|---|---|---|---|"]
     for name, rows in spreads.items():
         cell = lambda key, fmt: " / ".join(format(v, fmt) for v in np.percentile([r[key] for r in rows], [0, 50, 100]))  # noqa: E731
-        lines.append(f"| {name} | {len(rows)} | {cell('ate_m', '.3f')} | {cell('ate_deg', '.2f')} | {cell('rpe_m', '.3f')} "
-                     f"| {cell('rpe_deg', '.2f')} | {cell('loops_wrong', '.0f')} |")
+        lines.append(f"| {name} | {len(rows)} | {cell('ate_m', '.3f')} | {cell('ate_deg', '.2f')} "
+                     f"| {cell('rpe_m', '.3f')} | {cell('rpe_deg', '.2f')} | {cell('loops_wrong', '.0f')} |")
     return "\n".join(lines)
 
 
@@ -177,17 +179,20 @@ def table(rows):
     def flag(row, key):
         return "" if row[key] <= TARGETS[key] else " *"
     lines = ["| log | scans | ATE m | ATE deg | RPE10 m | RPE10 deg | odometry ATE m / deg | odometry RPE10 m / deg "
-             "| ATE / odometry ATE | scan matches accepted | loops tried / accepted / in the graph / wrong (fit ours better) "
+             "| ATE / odometry ATE | scan matches accepted "
+             "| loops tried / accepted / in the graph / wrong (fit ours better) "
              "| map misfit cm, ours / reference | ms per scan "
              "| front-end match median ms |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(
-            f"| {r['log']} | {r['scans']} | {r['ate_m']:.3f}{flag(r, 'ate_m')} | {r['ate_deg']:.2f}{flag(r, 'ate_deg')} "
+            f"| {r['log']} | {r['scans']} | {r['ate_m']:.3f}{flag(r, 'ate_m')} "
+            f"| {r['ate_deg']:.2f}{flag(r, 'ate_deg')} "
             f"| {r['rpe_m']:.3f}{flag(r, 'rpe_m')} | {r['rpe_deg']:.2f}{flag(r, 'rpe_deg')} "
             f"| {r['odo_ate_m']:.2f} / {r['odo_ate_deg']:.1f} | {r['odo_rpe_m']:.3f} / {r['odo_rpe_deg']:.2f} "
             f"| {r['ate_m'] / r['odo_ate_m']:.3f} | {r['scan_accepted']}/{r['scan_tried']} "
-            f"| {r['loops_tried']} / {r['loops_accepted']} / {r['loops_edges']} / {r['loops_wrong']} ({r['loops_wrong_ours']}) "
+            f"| {r['loops_tried']} / {r['loops_accepted']} / {r['loops_edges']} "
+            f"/ {r['loops_wrong']} ({r['loops_wrong_ours']}) "
             f"| {100 * r['misfit'][0]:.2f} / {100 * r['misfit'][1]:.2f} | {r['ms_per_scan']:.0f} "
             f"| {r['match_ms']:.1f} |")
     stages = list(rows[0]["stages"])

@@ -253,7 +253,7 @@ def main():
             "|---|---|---|---|---|---|---|", *rows, "",
             f"A 4000 x 4000 map (gdc_3 tiled) prepared in {seconds:.2f} s (target 0.3), peak resident memory "
             f"{grown / 1024:.2f} GB higher (target 0.5).", "",
-            f"## Many pairs per call", "",
+            "## Many pairs per call", "",
             f"Every log's consecutive pairs ({len(tasks)} tasks, new maps: each prepared once however many tasks "
             f"name it), the same tasks in the same run. Target: `match_many` at least 1.5x the serial loop's "
             f"pairs per second, the same poses within 1e-6.", "",

@@ -63,7 +63,7 @@ def main():
     for kind, blur, k, ell in itertools.product(args.blur_kind, args.blur, args.prior_weight, args.rotation_scale):
         matcher = tm.Matcher(blur_kind=kind, blur=blur, prior_weight=k, rotation_scale=ell)
         cells, times, its = [], [], []
-        for i, (name, ranges, cy, bands, noise) in enumerate(ROWS):
+        for i, (_name, ranges, cy, bands, noise) in enumerate(ROWS):
             rates, sec, it = run_row(matcher, grid, np.array(ranges), cy, bands, noise, args.trials, args.seed + i)
             cells.append(" / ".join(f"{r:.0f}" for r in rates))
             times.append(sec)

@@ -10,23 +10,32 @@ take the covariance from the numeric Hessian of e. Conventions are stated once i
 
 import logging
 
-
-from ._status import Status
-from ._errors import (EngineError, InvalidMapError, InvalidOptionError, InvalidPoseError, LogFileError,
-                      LogFormatError, MapFileError, MapFormatError, TaichiMatchError)
-from ._grid import GridMap
 from ._covariance import CALIBRATED_COVARIANCE_SCALE
+from ._engines import make_engine
+from ._errors import (
+    EngineError,
+    InvalidMapError,
+    InvalidOptionError,
+    InvalidPoseError,
+    LogFileError,
+    LogFormatError,
+    MapFileError,
+    MapFormatError,
+    TaichiMatchError,
+)
+from ._grid import GridMap
 from ._matcher import Matcher, match
 from ._options import MatchOptions
-from ._result import MatchResult
-from ._engines import make_engine
 from ._prepared import PreparedMap
-from ._search import Hypothesis
+from ._result import MatchResult
 from ._se2 import as_poses, compose, inverse, transform_points, wrap_angle
+from ._search import Hypothesis
+from ._status import Status
 from .many import iter_matches, match_many
 
 __all__ = [
-    "GridMap", "discrepancy", "match", "match_many", "iter_matches", "Matcher", "MatchOptions", "MatchResult", "Hypothesis", "Status",
+    "GridMap", "discrepancy", "match", "match_many", "iter_matches", "Matcher", "MatchOptions", "MatchResult",
+    "Hypothesis", "Status",
     "CALIBRATED_COVARIANCE_SCALE",
     "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
     "MapFileError", "MapFormatError", "LogFileError", "LogFormatError",

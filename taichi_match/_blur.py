@@ -62,7 +62,7 @@ def gaussian_filter(stack, sigma):
     # million cells costs no more than one as wide as the map
     radius = int(min(_TRUNCATE * sigma + 0.5, max(stack.shape[1:])))
     if 2 * radius + 1 < _FFT_MIN_TAPS:
-        from scipy import ndimage          # SciPy is imported where used: `taichi-match --help` answers fast
+        from scipy import ndimage  # SciPy is imported where used: `taichi-match --help` answers fast
 
         return np.stack([ndimage.gaussian_filter(a, sigma, mode="constant", truncate=_TRUNCATE) for a in stack])
     taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)

@@ -12,9 +12,9 @@ import numpy as np
 
 from ._bfgs import minimize_bfgs, polish
 from ._cost import Counter, LevelCost
+from ._engines import make_engine
 from ._newton import minimize_newton
 from ._options import MatchOptions
-from ._engines import make_engine
 from ._prepared import PreparedMap
 from ._status import Status
 

@@ -147,7 +147,8 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
         f_t = _SCRATCH.get("f_t", (w, h), np.float64)
         f_t[...] = f.T
         g_t = _SCRATCH.get("g_t", (w, h), np.float64)
-        launch(rows, (f_t, g_t, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64)), None)
+        launch(rows, (f_t, g_t, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64)),
+               None)
         g = _SCRATCH.get("f_t", (h, w), np.float64)            # f_t is spent
         g[...] = g_t.T
         launch(rows, (g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64)), None)

@@ -48,10 +48,11 @@ from ._distance import near_weighted_envelope
 from ._grid import GridMap, cells
 from ._kernels import PAD
 from ._launch import Launcher, launch
-from ._taichi import kernel_lock, kernels
 from ._se2 import as_poses, inverse, transform_points
+from ._taichi import kernel_lock, kernels
 
-__all__ = ["conflict_grid", "envelope_reach", "envelope_profile", "near_conflict_grid", "wall_points", "points_array", "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
+__all__ = ["conflict_grid", "envelope_reach", "envelope_profile", "near_conflict_grid", "wall_points", "points_array",
+           "EnvelopeEngine", "NumpyEnvelope", "CHUNK"]
 
 CHUNK = 256
 # Batches of fewer point lookups (poses times walls of both maps) run on one thread: waking
@@ -112,8 +113,9 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, *, s
         if walls is not None:
             squared = near_weighted_envelope(*walls, (h, w), reach, profile[:-1], scratch=True)
         p = np.zeros((0, 0)) if prob is None else np.ascontiguousarray(prob, dtype=np.float64)
-        launch(kernels(_build_conflict), (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8),
-                                      profile, out), (prob is not None, walls is None))
+        launch(kernels(_build_conflict),
+               (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8), profile, out),
+               (prob is not None, walls is None))
     return out
 
 

@@ -12,9 +12,10 @@ import numbers
 import threading
 import time
 import weakref
-from typing import Optional
+from typing import Optional, Tuple
 
 import numpy as np
+import numpy.typing as npt
 
 from ._cost import Counter
 from ._covariance import calibrate, centroid_metric, covariance_floor, covariance_from_hessian, plateau_sd
@@ -108,7 +109,8 @@ class Matcher:
         prepared.ready(int(levels))
         return prepared
 
-    def match(self, a: GridMap, b: GridMap, initial_pose=None, *, search_window=None, **overrides) -> MatchResult:
+    def match(self, a: GridMap, b: GridMap, initial_pose: Optional[npt.ArrayLike] = None, *,
+              search_window: Optional[Tuple[float, float]] = None, **overrides) -> MatchResult:
         """Find r_A2B near ``initial_pose`` minimising h (eq. 8-9), after a search without it or
         within ``search_window``; the parameters are those of ``match``, ``overrides`` changing this
         matcher's options for this call only."""
@@ -178,7 +180,8 @@ def _searched_start(a, b, initial_pose, search_window, opts):
 _DEFAULT = {}
 
 
-def match(a: GridMap, b: GridMap, initial_pose=None, *, search_window=None, **options) -> MatchResult:
+def match(a: GridMap, b: GridMap, initial_pose: Optional[npt.ArrayLike] = None, *,
+          search_window: Optional[Tuple[float, float]] = None, **options) -> MatchResult:
     """Find the pose r_A2B of map B in map A near ``initial_pose`` (the paper's method).
 
     Parameters

@@ -174,17 +174,18 @@ class MatchOptions:
         >>> from taichi_match import MatchOptions
         >>> MatchOptions().replace(blur=0.2, levels=2).levels
         2
-        >>> MatchOptions().replace(blurr=0.2)
+        >>> MatchOptions().replace(blurr=0.2)  # doctest: +ELLIPSIS
         Traceback (most recent call last):
         ...
-        taichi_match._errors.InvalidOptionError: unknown option(s) ['blurr']; the options are the fields of MatchOptions: [...]
+        taichi_match._errors.InvalidOptionError: unknown option(s) ['blurr']; the options are ...
         """
         if not changes:
             return self
         names = [f.name for f in dataclasses.fields(self)]
         unknown = sorted(set(changes) - set(names))
         if unknown:
-            raise InvalidOptionError(f"unknown option(s) {unknown}; the options are the fields of MatchOptions: {names}")
+            raise InvalidOptionError(f"unknown option(s) {unknown}; "
+                                     f"the options are the fields of MatchOptions: {names}")
         return dataclasses.replace(self, **changes)
 
     @property

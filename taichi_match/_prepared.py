@@ -13,12 +13,11 @@ import numpy as np
 
 from ._blur import blur, blur_everywhere, wall_transform
 from ._distance import near_squared_distance, near_weighted_envelope
+from ._envelope import conflict_grid, envelope_profile, envelope_reach, near_conflict_grid, points_array, wall_points
 from ._errors import InvalidOptionError
 from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted, cells, grid_code, trinary_values, twin
 from ._kernels import PAD
 from ._pyramid import coarsen, halve_code
-from ._envelope import (conflict_grid, envelope_profile, envelope_reach, near_conflict_grid,
-                        points_array, wall_points)
 from ._verdict import CONFLICT_CELLS, WallDistance
 
 __all__ = ["PreparedMap"]
@@ -150,7 +149,8 @@ class PreparedMap:
             grid = self.lower
             if self._squared is not None:
                 reach = self._reach
-                envelope = envelope_profile(reach, self.resolution / self.blur_width)[np.minimum(self._squared, reach**2 + 1)]
+                envelope = envelope_profile(reach, self.resolution / self.blur_width)[
+                    np.minimum(self._squared, reach**2 + 1)]
                 hi = np.fmax(grid.prob, envelope)
             else:
                 weights = self.walls[2]
@@ -267,11 +267,11 @@ class PreparedMap:
         role: the levels, the verdict's wall distances, the rows of known cells and their moments
         (each once)."""
         if levels > self._ready:
-            self.wall_distance
-            self._moments
+            _ = self.wall_distance
+            _ = self._moments
             for k in range(levels):
                 level = self.level(k)
-                level.rows
+                _ = level.rows
             self._ready = levels
 
     def level(self, k):

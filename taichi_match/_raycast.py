@@ -25,8 +25,8 @@ Conventions:
   tDelta: then both see the same crossings, in the same order, with the same ties, to the bit.
 - All beams run in one parallel launch, the hits in a first loop, then the walks, which look up
   a cell holding a hit in the sorted list of their own scan's hit cells (a binary search); the
-  counts are added with integer atomics, so the result does not depend on the schedule. A beam takes at most |u1 - u0| + |v1 - v0| + 3 steps and stops
-  early once it has left the grid for good.
+  counts are added with integer atomics, so the result does not depend on the schedule. A beam
+  takes at most |u1 - u0| + |v1 - v0| + 3 steps and stops early once it has left the grid for good.
 
 Taichi is initialised lazily by ``_taichi.taichi`` (which also refuses a forked
 child) and launches are serialised with its lock. The kernel is built on first use and kept:
@@ -213,6 +213,6 @@ def count_traversals_taichi(segments, hit, shape, scan=None, offset=(0, 0), out=
         raise InvalidOptionError(f"segment coordinates must be finite and at most {MAX_COORDINATE:g} cells")
     own, lo, hi = own_hit_cells(segments, hit, scan, (rows, cols), (row0, col0))
     with kernel_lock():
-        launch(kernels(_build_kernel), (segments, hit, own, lo, hi, hits, misses, np.array([row0, col0], dtype=np.int32)),
-                None)
+        launch(kernels(_build_kernel),
+               (segments, hit, own, lo, hi, hits, misses, np.array([row0, col0], dtype=np.int32)), None)
     return hits, misses

@@ -52,10 +52,10 @@ import numpy as np
 
 from ._errors import InvalidMapError, InvalidOptionError
 from ._grid import GridMap, cells, trinary
-from ._pyramid import coarsen
 from ._launch import launch
-from ._taichi import kernel_lock, kernels
+from ._pyramid import coarsen
 from ._se2 import wrap_angle
+from ._taichi import kernel_lock, kernels
 
 __all__ = ["SearchOptions", "Hypothesis", "SearchResult", "search", "lattice_cells", "score_values", "window_max"]
 
@@ -326,7 +326,8 @@ class _Scorer:
     def _numpy(self, grid, probes, sizes):
         out = np.zeros(len(probes), dtype=np.float64)
         for m, (k, base) in enumerate(probes):
-            for offsets, n, values in ((self.wall_offsets, sizes[0], grid), (self.free_offsets, sizes[1], self.free_grid)):
+            for offsets, n, values in ((self.wall_offsets, sizes[0], grid),
+                                       (self.free_offsets, sizes[1], self.free_grid)):
                 idx = offsets[k, :n].astype(np.int64) + base
                 idx = idx[(idx >= 0) & (idx < len(values))]
                 out[m] += values[idx].astype(np.float64).sum()
@@ -337,7 +338,8 @@ class _Scorer:
 
 def _build(ti):
     @ti.kernel
-    def score(wall_offsets: ti.types.ndarray(dtype=ti.i32, ndim=2), free_offsets: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    def score(wall_offsets: ti.types.ndarray(dtype=ti.i32, ndim=2),
+              free_offsets: ti.types.ndarray(dtype=ti.i32, ndim=2),
               sizes: ti.types.ndarray(dtype=ti.i32, ndim=1), grid: ti.types.ndarray(dtype=ti.f32, ndim=1),
               free: ti.types.ndarray(dtype=ti.f32, ndim=1), probes: ti.types.ndarray(dtype=ti.i32, ndim=2),
               out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
@@ -441,9 +443,11 @@ class _Tree:
         when the level below has fewer, their translations quartered."""
         half = 2**(level - 1)
         n = self.angles[level - 1]
-        offsets = [(dk, dr, dc) for dk in ((0, n) if self.angles[level] > n else (0,)) for dr in (0, half) for dc in (0, half)]
+        offsets = [(dk, dr, dc) for dk in ((0, n) if self.angles[level] > n else (0,))
+                   for dr in (0, half) for dc in (0, half)]
         children = np.concatenate([parents + np.array(o, dtype=np.int32) for o in offsets])
-        inside = (children[:, 0] < len(lattice.thetas)) & (children[:, 1] < lattice.hi[0]) & (children[:, 2] < lattice.hi[1])
+        inside = ((children[:, 0] < len(lattice.thetas)) & (children[:, 1] < lattice.hi[0])
+                  & (children[:, 2] < lattice.hi[1]))
         return children[inside]
 
 
@@ -505,7 +509,8 @@ def _branch_and_bound(scorer, lattice, tree, opts):
             # keep only the leaves that may still be hypotheses (and the best's ties)
             above |= leaf_scores >= leaf_scores.max()
             leaf_scores, leaf_nodes = leaf_scores[above], leaf_nodes[above]
-    return _hypotheses(lattice, leaf_scores, leaf_nodes, _distinct(lattice, leaf_scores, leaf_nodes, opts, threshold)[1]), complete
+    return _hypotheses(lattice, leaf_scores, leaf_nodes,
+                       _distinct(lattice, leaf_scores, leaf_nodes, opts, threshold)[1]), complete
 
 
 def _hypotheses(lattice, scores, nodes, picked):

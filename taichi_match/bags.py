@@ -83,7 +83,8 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
     if len(odo) >= 2 and (np.abs(odo[:, 1:3]).max() > MAX_COORDINATE or np.abs(odo[:, 3]).max() > MAX_ANGLE):
         raise LogFormatError(f"{path}: odometry poses beyond {MAX_COORDINATE:g} m or {MAX_ANGLE:g} rad")
     if len(odo) < 2 or not np.all(np.isfinite(odo)):
-        raise LogFormatError(f"{path}: fewer than two finite Odometry messages (a log without odometry cannot be mapped)")
+        raise LogFormatError(f"{path}: fewer than two finite Odometry messages "
+                             "(a log without odometry cannot be mapped)")
     heading = np.unwrap(odo[:, 3])
     out, left_out = [], 0
     for msg in sorted(scans, key=lambda m: _stamp(m.header)):

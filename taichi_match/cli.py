@@ -198,7 +198,7 @@ def _align_many(args):
     runnable = [(k, pair) for k, pair in enumerate(pairs) if pair[1] in maps and pair[2] in maps]
     tasks = [(maps[a], maps[b], guess) for _, (_, a, b, guess) in runnable]
     lines, written, accepted = {}, 0, 0
-    for k, (number, a, b, _) in enumerate(pairs):
+    for k, (_number, a, b, _) in enumerate(pairs):
         if a in failed or b in failed:
             lines[k] = {"error": failed.get(a) or failed.get(b)}
     bar = _progress("align-many", len(pairs), args.progress or sys.stderr.isatty(), unit="pair")
@@ -354,7 +354,8 @@ def _slam(args):
             raise ValueError(f"{args.reference}: the reference must hold one pose per scan, at the scans' "
                              f"timestamps ({len(stamps)} poses for {len(log)} scans)")
     options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
-                                               ("max_ray_length", args.max_ray), ("target_refresh", args.target_refresh),
+                                               ("max_ray_length", args.max_ray),
+                                               ("target_refresh", args.target_refresh),
                                                ("submap_frames", args.submap_frames or None),
                                                ("loop_search", args.loop_search))
                              if v is not None})
@@ -402,8 +403,8 @@ def _demo_slam(args):
           f"{sum(loop['edge'] for loop in result.loops)}")
     print(f"against the simulated truth: ATE {errors['ate_m']:.3f} m {errors['ate_deg']:.2f} deg, RPE over 10 scans "
           f"{errors['rpe_m']:.3f} m {errors['rpe_deg']:.2f} deg")
-    print(f"the odometry alone:          ATE {odometry['ate_m']:.3f} m {odometry['ate_deg']:.2f} deg, RPE over 10 scans "
-          f"{odometry['rpe_m']:.3f} m {odometry['rpe_deg']:.2f} deg")
+    print(f"the odometry alone:          ATE {odometry['ate_m']:.3f} m {odometry['ate_deg']:.2f} deg, "
+          f"RPE over 10 scans {odometry['rpe_m']:.3f} m {odometry['rpe_deg']:.2f} deg")
     print(f"time {seconds:.1f} s, {1e3 * seconds / len(run.log):.0f} ms per scan")
     if args.plot:
         try:

@@ -55,7 +55,8 @@ from ._grid import GridMap
 
 __all__ = [
     "read_ros_map", "write_ros_map", "read_image", "write_image", "to_occupancy_grid", "from_occupancy_grid",
-    "save_npz", "load_npz", "save_npy", "load_npy", "load_map", "ros_map_paths", "MAX_MAP_CELLS", "MAX_FILE_BYTES", "MAX_YAML_BYTES",
+    "save_npz", "load_npz", "save_npy", "load_npy", "load_map", "ros_map_paths", "MAX_MAP_CELLS", "MAX_FILE_BYTES",
+    "MAX_YAML_BYTES",
 ]
 
 MODES = ("trinary", "scale", "raw")
@@ -453,7 +454,8 @@ def read_image(path: PathLike) -> np.ndarray:
     except MemoryError:
         raise
     except Exception as exc:       # Pillow's decoders on a damaged file: OSError, SyntaxError, ValueError, ...
-        raise MapFormatError(f"{path}: a truncated, corrupt or unsupported image ({type(exc).__name__}: {exc})") from exc
+        raise MapFormatError(f"{path}: a truncated, corrupt or unsupported image "
+                             f"({type(exc).__name__}: {exc})") from exc
 
 
 def _pixels(image):

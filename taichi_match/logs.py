@@ -13,9 +13,10 @@ Apart from the core (which never imports it). Conventions:
   one step short of +90), as GMapping's CARMEN reader has it. On the logs of ``shared/logs``
   this gives sharper maps than spreading every count over exactly 180 degrees (the distinct
   5 cm cells holding returns of 20 consecutive scans: aces, 180 beams, 0.517 against 0.537 per
-  return; freiburg-101, 360 beams, 0.352 against 0.367). The laser pose is (x, y, theta). ``ROBOTLASER1`` lines carry their own start angle,
-  angular step, maximum range and laser pose. ``ODOM x y theta tv rv accel timestamp host
-  logger_timestamp`` lines are kept apart as the odometry stream. Other lines are ignored.
+  return; freiburg-101, 360 beams, 0.352 against 0.367). The laser pose is (x, y, theta).
+  ``ROBOTLASER1`` lines carry their own start angle, angular step, maximum range and laser pose.
+  ``ODOM x y theta tv rv accel timestamp host logger_timestamp`` lines are kept apart as the
+  odometry stream. Other lines are ignored.
 - TUM: ``timestamp x y z qx qy qz qw`` per line; the planar pose is (x, y, yaw about z).
 
 Files may be gzipped (by content, whatever their name: ``.log``, ``.clf``, ``.gz``). A malformed

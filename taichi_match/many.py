@@ -24,10 +24,10 @@ from typing import Iterable, Iterator, List, Optional, Tuple, Union
 
 from ._errors import InvalidMapError, InvalidOptionError, TaichiMatchError
 from ._grid import GridMap, _from_code, grid_code
-from ._taichi import _allowed_cpus, set_threads
 from ._matcher import Matcher
 from ._options import MatchOptions
 from ._result import MatchResult
+from ._taichi import _allowed_cpus, set_threads
 
 __all__ = ["match_many", "iter_matches"]
 
@@ -126,7 +126,7 @@ def iter_matches(tasks: Iterable[Task], options: Optional[MatchOptions] = None, 
     matcher = Matcher(options, **overrides)          # the options checked here, before any work
     if executor is None:
         for index, (a, b, guess) in enumerate(tasks):
-            yield index, _outcome(lambda: matcher.match(a, b, guess), index, errors)
+            yield index, _outcome(lambda a=a, b=b, guess=guess: matcher.match(a, b, guess), index, errors)
         return
     if chunk_size is None:
         chunk_size = max(1, math.ceil(len(tasks) / _workers(executor)))

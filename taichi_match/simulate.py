@@ -75,7 +75,8 @@ def floor_plan(seed: int = 0, resolution: float = 0.05) -> GridMap:
         for y_wall in (outer[1], outer[3]):
             d = rng.uniform(max(lo, outer[0]) + 0.3, min(hi, outer[2]) - 1.2)
             free(d, y_wall - 0.01, d + 0.9, y_wall + w + 0.01)
-    for lo, hi in zip(np.r_[outer[1], np.arange(6.0, height - 5.9, 4.0)], np.r_[np.arange(6.0, height - 5.9, 4.0), outer[3]]):
+    for lo, hi in zip(np.r_[outer[1], np.arange(6.0, height - 5.9, 4.0)],
+                      np.r_[np.arange(6.0, height - 5.9, 4.0), outer[3]]):
         for x_wall in (outer[0], outer[2]):
             d = rng.uniform(lo + 0.3, hi - 1.2)
             free(x_wall - 0.01, d, x_wall + w + 0.01, d + 0.9)
@@ -187,7 +188,8 @@ def simulate_log(seed: int = 0, *, laps: float = 2.0, step: float = 0.5, beams: 
     truth[:, 2] = wrap_angle(truth[:, 2] + rng.normal(0.0, np.radians(3.0), len(truth)))
     odo = _odometry(truth, rng, scale_error, bias_deg_per_m)
     angles = np.linspace(-np.pi / 2, np.pi / 2, beams)
-    scans = tuple(Scan(timestamp=float(k), ranges=cast_scan(world, p, angles, max_range=max_range, noise=noise, rng=rng),
+    scans = tuple(Scan(timestamp=float(k),
+                       ranges=cast_scan(world, p, angles, max_range=max_range, noise=noise, rng=rng),
                        angles=angles, pose=o, max_range=max_range)
                   for k, (p, o) in enumerate(zip(truth, odo)))
     return SimulatedRun(LaserLog(scans=scans, odometry=np.column_stack([np.arange(len(odo), dtype=float), odo])),

@@ -199,8 +199,8 @@ class SlamOptions:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {value!r}")
         if self.max_ray_length / self.resolution < MIN_CELLS_PER_RAY:
-            raise InvalidOptionError(f"max_ray_length / resolution must be at least {MIN_CELLS_PER_RAY} (a ray across at "
-                                     f"least that many cells, or a scan holds too few walls to match); got "
+            raise InvalidOptionError(f"max_ray_length / resolution must be at least {MIN_CELLS_PER_RAY} (a ray "
+                                     f"across at least that many cells, or a scan holds too few walls to match); got "
                                      f"{self.max_ray_length!r} m / {self.resolution!r} m")
         for name in ("loop_radius", "loop_growth"):
             value = getattr(self, name)
@@ -211,7 +211,8 @@ class SlamOptions:
             raise InvalidOptionError(f"loop_search must be None or a finite number >= 0; got {self.loop_search!r}")
         sd = np.asarray(self.odometry_sd, dtype=np.float64)
         if sd.shape != (5,) or not np.all(np.isfinite(sd)) or np.any(sd < 0) or sd[3] <= 0 or sd[4] <= 0:
-            raise InvalidOptionError(f"odometry_sd must be 5 finite numbers >= 0, the floors > 0; got {self.odometry_sd!r}")
+            raise InvalidOptionError(f"odometry_sd must be 5 finite numbers >= 0, the floors > 0; "
+                                     f"got {self.odometry_sd!r}")
 
 
 @dataclass
@@ -398,7 +399,8 @@ class Slam:
         self._open_submap(gtsam, graph, values, keys, submaps, done, 0, n, est, travelled)
         accepted = tried = 0
         loops, scans, match_seconds = [], [], []
-        self._counts = {}                       # submap index -> (BeamCounts, scans counted), since the last optimisation
+        # submap index -> (BeamCounts, scans counted), since the last optimisation
+        self._counts = {}
         target_cast = None                      # (submap, scan, grid): the front end's target as last cast
         for k in range(1, n):
             delta = compose(inverse(odo[k - 1]), odo[k])
@@ -520,7 +522,8 @@ class Slam:
             if max(along_a, along_b) > NEIGHBOUR_PATH:
                 continue
             path = along_a + along_b
-            predicted = compose(compose(compose(inverse(est[a]), est[a2]), other["pose"]), compose(inverse(est[b2]), est[b]))
+            predicted = compose(compose(compose(inverse(est[a]), est[a2]), other["pose"]),
+                                compose(inverse(est[b2]), est[b]))
             error = compose(inverse(z), predicted)
             t_o, r_o = _sd(other["covariance"])
             sd_r = math.sqrt(r_z**2 + r_o**2 + (rad_per_m * path + floor_rad) ** 2)
@@ -555,7 +558,8 @@ class Slam:
             if opts.loop_search is not None and drift > opts.loop_search:
                 window = (min(drift, LOOP_SEARCH_MAX), min(drift, LOOP_SEARCH_MAX) / LOOP_SEARCH_ARM)
             res = self._matcher.match(other.final_grid, submap.final_grid, guess, search_window=window)
-            loop = {"window": window, "hypotheses": res.hypotheses, "submaps": (other.index, submap.index), "frames": (a, b), "anchors": (other.anchor, submap.anchor),
+            loop = {"window": window, "hypotheses": res.hypotheses, "submaps": (other.index, submap.index),
+                    "frames": (a, b), "anchors": (other.anchor, submap.anchor),
                     "members": (other.final_poses, submap.final_poses), "accepted": res.accepted,
                     "pose": res.pose, "guess": guess, "covariance": res.calibrated_covariance,
                     "evidence": res.evidence, "status": res.status.name}
@@ -696,7 +700,8 @@ def report(result: SlamResult, source: str = "") -> str:
              f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", "",
              "| stage | seconds | ms per scan |", "|---|---|---|"]
     lines += [f"| {stage} | {sec:.2f} | {1e3 * sec / n:.1f} |" for stage, sec in result.seconds.items()]
-    lines += [f"| total | {total:.2f} | {1e3 * total / n:.1f} |", "", "Options:", "", "```", repr(result.options), "```", ""]
+    lines += [f"| total | {total:.2f} | {1e3 * total / n:.1f} |", "", "Options:", "", "```", repr(result.options),
+              "```", ""]
     return "\n".join(lines)
 
 
