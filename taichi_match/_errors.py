@@ -1,6 +1,6 @@
 """The library's own exceptions: one root, subclasses of the built-ins where natural."""
 
-__all__ = ["TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
+__all__ = ["shown", "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
            "MapFileError", "MapFormatError", "LogFileError", "LogFormatError"]
 
 
@@ -39,3 +39,21 @@ class LogFileError(TaichiMatchError, OSError):
 
 class LogFormatError(TaichiMatchError, ValueError):
     """A laser log or trajectory file is readable but malformed."""
+
+
+def shown(value) -> str:
+    """``repr(value)`` as an error message shows it: NumPy scalars, also inside tuples and lists,
+    as plain numbers (NumPy 2's repr would print ``np.float64(nan)``).
+
+    >>> import numpy as np
+    >>> shown((np.float64(0.5), np.int64(3))), shown(np.float32(2.0)), shown("a")
+    ('(0.5, 3)', '2.0', "'a'")
+    """
+    def plain(v):
+        if hasattr(v, "item") and type(v).__module__ == "numpy" and getattr(v, "ndim", None) == 0:
+            return v.item()
+        if isinstance(v, (tuple, list)):
+            return type(v)(plain(x) for x in v)
+        return v
+
+    return repr(plain(value))

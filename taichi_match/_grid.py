@@ -19,7 +19,7 @@ import numbers
 import numpy as np
 import numpy.typing as npt
 
-from ._errors import InvalidMapError
+from ._errors import InvalidMapError, shown
 
 __all__ = ["GridMap", "MAX_CELLS", "cells", "trinary", "trinary_code", "trinary_values", "UNKNOWN", "FREE", "OCCUPIED"]
 
@@ -341,7 +341,7 @@ def _check_prob(prob):
 
 def _check_resolution(resolution):
     if isinstance(resolution, bool) or not isinstance(resolution, (numbers.Real, np.floating, np.integer)):
-        raise InvalidMapError(f"resolution must be a positive number of metres per cell; got {resolution!r}")
+        raise InvalidMapError(f"resolution must be a positive number of metres per cell; got {shown(resolution)}")
     res = float(resolution)
     if not np.isfinite(res) or res <= 0.0:
         raise InvalidMapError(f"resolution must be finite and > 0 (metres per cell); got {res}")
@@ -354,7 +354,7 @@ def _check_origin(origin):
         arr = np.asarray(origin, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise InvalidMapError(f"origin must be (x0, y0) or (x0, y0, yaw) in metres and radians; "
-                              f"got {origin!r}") from exc
+                              f"got {shown(origin)}") from exc
     if arr.shape not in ((2,), (3,)):
         raise InvalidMapError(f"origin must be (x0, y0) or (x0, y0, yaw), shape (2,) or (3,); got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):

@@ -20,7 +20,7 @@ import numpy.typing as npt
 from ._cost import Counter
 from ._covariance import calibrate, centroid_metric, covariance_floor, covariance_from_hessian, plateau_sd
 from ._descent import descend
-from ._errors import InvalidMapError, InvalidOptionError
+from ._errors import InvalidMapError, InvalidOptionError, shown
 from ._grid import GridMap
 from ._options import MatchOptions
 from ._prepared import PreparedMap
@@ -105,7 +105,7 @@ class Matcher:
                 prepared = per_map.setdefault(key, prepared)
         levels = self.options.levels if levels is None else levels
         if isinstance(levels, bool) or not isinstance(levels, numbers.Integral) or levels < 1:
-            raise InvalidOptionError(f"levels must be a whole number >= 1; got {levels!r}")
+            raise InvalidOptionError(f"levels must be a whole number >= 1; got {shown(levels)}")
         prepared.ready(int(levels))
         return prepared
 
@@ -169,7 +169,7 @@ def _searched_start(a, b, initial_pose, search_window, opts):
             window = ()
         if len(window) != 2 or not all(math.isfinite(v) for v in window):
             raise InvalidOptionError(f"search_window must be (metres, radians), two finite numbers; "
-                                     f"got {search_window!r}")
+                                     f"got {shown(search_window)}")
         search_window = window
     found = search(a, b, guess, SearchOptions(window=search_window), engine=opts.engine)
     hypotheses = tuple(found.hypotheses)

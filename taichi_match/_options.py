@@ -11,7 +11,7 @@ import numpy as np
 
 from ._blur import BLUR_KINDS
 from ._engines import ENGINES
-from ._errors import InvalidOptionError
+from ._errors import InvalidOptionError, shown
 
 __all__ = ["MatchOptions"]
 
@@ -121,16 +121,16 @@ class MatchOptions:
         _check_number("blur_growth", self.blur_growth, minimum=1.0)
         _check_number("unknown_cost", self.unknown_cost, minimum=0.0)
         if self.unknown_cost > 1.0:
-            raise InvalidOptionError(f"unknown_cost must be in [0, 1]; got {_shown(self.unknown_cost)}")
+            raise InvalidOptionError(f"unknown_cost must be in [0, 1]; got {shown(self.unknown_cost)}")
         if self.blur_growth > 16.0:
-            raise InvalidOptionError(f"blur_growth must be at most 16; got {_shown(self.blur_growth)}")
+            raise InvalidOptionError(f"blur_growth must be at most 16; got {shown(self.blur_growth)}")
         for name in ("blur", "prior_weight_per_cell", "gtol", "refine_xtol"):
             _check_number(name, getattr(self, name), minimum=0.0)
         _check_number("covariance_scale", self.covariance_scale, minimum=0.0, strict=True)
         for name in ("blur", "rotation_scale", "prior_weight", "prior_weight_per_cell", "step", "max_step"):
             value = getattr(self, name)
             if value is not None and isinstance(value, (int, float, np.integer, np.floating)) and value > MAX_OPTION:
-                raise InvalidOptionError(f"{name} must be at most {MAX_OPTION:g}; got {_shown(value)}")
+                raise InvalidOptionError(f"{name} must be at most {MAX_OPTION:g}; got {shown(value)}")
         if self.xtol is not None:
             _check_number("xtol", self.xtol, minimum=0.0)
         if self.prior_weight is not None:
@@ -217,21 +217,15 @@ class MatchOptions:
         return np.array([eps, eps, eps_theta])
 
 
-def _shown(value):
-    """``value`` as an error message shows it: NumPy scalars as plain numbers (NumPy 2's repr
-    would print ``np.float64(...)``)."""
-    return repr(value.item() if isinstance(value, np.generic) else value)
-
-
 def _check_number(name, value, *, minimum, strict=False):
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise InvalidOptionError(f"{name} must be a number; got {_shown(value)}")
+        raise InvalidOptionError(f"{name} must be a number; got {shown(value)}")
     if not np.isfinite(value) or value < minimum or (strict and value == minimum):
-        raise InvalidOptionError(f"{name} must be finite and {'>' if strict else '>='} {minimum}; got {_shown(value)}")
+        raise InvalidOptionError(f"{name} must be finite and {'>' if strict else '>='} {minimum}; got {shown(value)}")
 
 
 def _check_integer(name, value, *, minimum, maximum=None):
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum \
             or (maximum is not None and value > maximum):
         bounds = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
-        raise InvalidOptionError(f"{name} must be an integer {bounds}; got {_shown(value)}")
+        raise InvalidOptionError(f"{name} must be an integer {bounds}; got {shown(value)}")

@@ -36,7 +36,7 @@ program, as it does for the kernels of ``_kernels``.
 
 import numpy as np
 
-from ._errors import InvalidOptionError
+from ._errors import InvalidOptionError, shown
 from ._launch import launch
 from ._taichi import kernel_lock, kernels
 
@@ -197,7 +197,7 @@ def count_traversals_taichi(segments, hit, shape, scan=None, offset=(0, 0), out=
     if segments.ndim != 2 or segments.shape[1] != 4 or hit.shape != (segments.shape[0],):
         raise InvalidOptionError(f"segments must be (R, 4) and hit (R,); got {segments.shape} and {hit.shape}")
     if rows < 0 or cols < 0:
-        raise InvalidOptionError(f"shape must be (rows, cols) >= 0; got {shape!r}")
+        raise InvalidOptionError(f"shape must be (rows, cols) >= 0; got {shown(shape)}")
     row0, col0 = (int(n) for n in offset)
     if out is None:
         hits, misses = np.zeros((rows, cols), dtype=np.int32), np.zeros((rows, cols), dtype=np.int32)
@@ -206,7 +206,7 @@ def count_traversals_taichi(segments, hit, shape, scan=None, offset=(0, 0), out=
         if any(a.shape != (rows, cols) or a.dtype != np.int32 or not a.flags.c_contiguous for a in out):
             raise InvalidOptionError(f"out must be two C-contiguous int32 arrays of shape {(rows, cols)}")
     if abs(row0) > MAX_COORDINATE or abs(col0) > MAX_COORDINATE:
-        raise InvalidOptionError(f"offset must be at most {MAX_COORDINATE:g} cells; got {offset!r}")
+        raise InvalidOptionError(f"offset must be at most {MAX_COORDINATE:g} cells; got {shown(offset)}")
     if segments.shape[0] == 0 or hits.size == 0:
         return hits, misses
     if not np.all(np.abs(segments) <= MAX_COORDINATE):          # also false for NaN

@@ -10,7 +10,7 @@ in metres and radians, theta reported in (-pi, pi].
 import numpy as np
 import numpy.typing as npt
 
-from ._errors import InvalidPoseError
+from ._errors import InvalidPoseError, shown
 
 __all__ = ["wrap_angle", "as_pose", "as_poses", "rotation", "transform_points", "compose", "inverse"]
 
@@ -72,7 +72,7 @@ def as_pose(pose: npt.ArrayLike, name: str = "pose") -> np.ndarray:
     try:
         arr = np.asarray(pose, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InvalidPoseError(f"{name} must be three numbers (x, y, theta); got {pose!r}") from exc
+        raise InvalidPoseError(f"{name} must be three numbers (x, y, theta); got {shown(pose)}") from exc
     if arr.shape != (3,):
         raise InvalidPoseError(f"{name} must have shape (3,) as (x, y, theta); got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):
@@ -113,7 +113,7 @@ def as_poses(poses: npt.ArrayLike, name: str = "poses") -> np.ndarray:
     try:
         arr = np.asarray(poses, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise InvalidPoseError(f"{name} must be an (N, 3) array of (x, y, theta); got {poses!r}") from exc
+        raise InvalidPoseError(f"{name} must be an (N, 3) array of (x, y, theta); got {shown(poses)}") from exc
     if arr.ndim == 1 and arr.shape == (3,):
         arr = arr[None, :]
     if arr.ndim != 2 or arr.shape[1] != 3:

@@ -50,7 +50,7 @@ import weakref
 
 import numpy as np
 
-from ._errors import InvalidMapError, InvalidOptionError
+from ._errors import InvalidMapError, InvalidOptionError, shown
 from ._grid import GridMap, cells, trinary
 from ._launch import launch
 from ._pyramid import coarsen
@@ -373,16 +373,16 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
             raise InvalidOptionError("a search window needs a guess")
         metres, radians = (float(v) for v in opts.window)
         if not (0.0 <= metres <= 1e4 and 0.0 <= radians <= 4.0 * math.pi):
-            raise InvalidOptionError(f"window must be (0..1e4 metres, 0..4 pi radians); got {opts.window!r}")
+            raise InvalidOptionError(f"window must be (0..1e4 metres, 0..4 pi radians); got {shown(opts.window)}")
         guess = np.asarray(guess, dtype=np.float64)
     if isinstance(opts.max_nodes, bool) or not isinstance(opts.max_nodes, int) or opts.max_nodes < 1:
-        raise InvalidOptionError(f"max_nodes must be an integer >= 1; got {opts.max_nodes!r}")
+        raise InvalidOptionError(f"max_nodes must be an integer >= 1; got {shown(opts.max_nodes)}")
     if opts.blur is not None and not (0.0 < opts.blur <= 1e3):
-        raise InvalidOptionError(f"blur must be in (0, 1e3] metres or None; got {opts.blur!r}")
+        raise InvalidOptionError(f"blur must be in (0, 1e3] metres or None; got {shown(opts.blur)}")
     if engine not in ("taichi", "numpy"):
         raise InvalidOptionError(f"engine must be 'taichi' or 'numpy'; got {engine!r}")
     if opts.resolution is not None and not (0.0 < opts.resolution <= 1e3):
-        raise InvalidOptionError(f"resolution must be in (0, 1e3] metres or None; got {opts.resolution!r}")
+        raise InvalidOptionError(f"resolution must be in (0, 1e3] metres or None; got {shown(opts.resolution)}")
     target = DEFAULT_RESOLUTION if opts.resolution is None else opts.resolution
     a, b = _searched_grid(a, target), _searched_grid(b, target)
     walls, free = _points(b)

@@ -22,7 +22,7 @@ import math
 import os
 from typing import Iterable, Iterator, List, Optional, Tuple, Union
 
-from ._errors import InvalidMapError, InvalidOptionError, TaichiMatchError
+from ._errors import InvalidMapError, InvalidOptionError, TaichiMatchError, shown
 from ._grid import GridMap, _from_code, grid_code
 from ._matcher import Matcher
 from ._options import MatchOptions
@@ -131,7 +131,7 @@ def iter_matches(tasks: Iterable[Task], options: Optional[MatchOptions] = None, 
     if chunk_size is None:
         chunk_size = max(1, math.ceil(len(tasks) / _workers(executor)))
     elif isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
-        raise InvalidOptionError(f"chunk_size must be a whole number >= 1; got {chunk_size!r}")
+        raise InvalidOptionError(f"chunk_size must be a whole number >= 1; got {shown(chunk_size)}")
     threads = max(1, len(_allowed_cpus()) // _workers(executor))
     trinary = matcher.options.evidence == "trinary"
     futures = {}

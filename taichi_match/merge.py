@@ -14,7 +14,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from ._errors import InvalidMapError, InvalidOptionError, InvalidPoseError
+from ._errors import InvalidMapError, InvalidOptionError, InvalidPoseError, shown
 from ._grid import GridMap
 from ._se2 import as_pose, inverse, transform_points
 from .io import MAX_MAP_CELLS
@@ -124,7 +124,7 @@ def merge_maps(a: GridMap, b: GridMap, pose_a2b: npt.ArrayLike, *, resolution: f
             raise InvalidMapError(f"{name} must be a GridMap; got {type(grid).__name__}")
     if resolution is not None and not (isinstance(resolution, (int, float)) and math.isfinite(resolution)
                                        and resolution > 0):
-        raise InvalidOptionError(f"resolution must be a finite number of metres > 0 or None; got {resolution!r}")
+        raise InvalidOptionError(f"resolution must be a finite number of metres > 0 or None; got {shown(resolution)}")
     pose = as_pose(pose_a2b, "pose_a2b")
     res = a.resolution if resolution is None else float(resolution)
     corners_b = _corners(b)

@@ -35,7 +35,7 @@ from typing import Literal
 
 import numpy as np
 
-from ._errors import InvalidOptionError, InvalidPoseError
+from ._errors import InvalidOptionError, InvalidPoseError, shown
 from ._grid import GridMap, _trusted, trinary
 from ._se2 import as_poses
 
@@ -61,13 +61,13 @@ class SensorModel:
         for name in ("hit", "miss", "clamp", "min_range", "max_ray_length", "no_return_length"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-                raise InvalidOptionError(f"SensorModel.{name} must be a number; got {value!r}")
+                raise InvalidOptionError(f"SensorModel.{name} must be a number; got {shown(value)}")
         for name in ("hit", "clamp", "min_range", "max_ray_length", "no_return_length"):
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0.0:
-                raise InvalidOptionError(f"SensorModel.{name} must be finite and >= 0; got {value!r}")
+                raise InvalidOptionError(f"SensorModel.{name} must be finite and >= 0; got {shown(value)}")
         if not np.isfinite(self.miss) or self.miss > 0.0:
-            raise InvalidOptionError(f"SensorModel.miss must be finite and <= 0; got {self.miss!r}")
+            raise InvalidOptionError(f"SensorModel.miss must be finite and <= 0; got {shown(self.miss)}")
         if self.max_ray_length <= self.min_range:
             raise InvalidOptionError("SensorModel.max_ray_length must exceed min_range")
 
@@ -185,7 +185,7 @@ class BeamCounts:
     def __init__(self, *, resolution: float = 0.05, model: SensorModel = SensorModel(), margin: int = 2,
                  engine: Literal["taichi", "numpy"] = "taichi"):
         if not np.isfinite(resolution) or resolution <= 0.0:
-            raise InvalidOptionError(f"resolution must be finite and > 0; got {resolution!r}")
+            raise InvalidOptionError(f"resolution must be finite and > 0; got {shown(resolution)}")
         self.resolution, self.model, self.margin, self.engine = resolution, model, margin, engine
         self._offset = np.zeros(2, dtype=np.int64)    # lattice (row, col) of the arrays' cell [0, 0]
         self._hits = self._misses = np.zeros((0, 0), dtype=np.int32)

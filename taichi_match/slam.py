@@ -74,7 +74,7 @@ from typing import Optional
 
 import numpy as np
 
-from ._errors import InvalidOptionError
+from ._errors import InvalidOptionError, shown
 from ._grid import cells
 from ._matcher import Matcher
 from ._options import MatchOptions
@@ -193,26 +193,26 @@ class SlamOptions:
             if not isinstance(getattr(self, name), bool):
                 raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
-            raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {self.submap_scans!r}")
+            raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {shown(self.submap_scans)}")
         for name in ("resolution", "max_ray_length", "robust_kernel"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise InvalidOptionError(f"{name} must be a finite number > 0; got {value!r}")
+                raise InvalidOptionError(f"{name} must be a finite number > 0; got {shown(value)}")
         if self.max_ray_length / self.resolution < MIN_CELLS_PER_RAY:
             raise InvalidOptionError(f"max_ray_length / resolution must be at least {MIN_CELLS_PER_RAY} (a ray "
                                      f"across at least that many cells, or a scan holds too few walls to match); got "
-                                     f"{self.max_ray_length!r} m / {self.resolution!r} m")
+                                     f"{shown(self.max_ray_length)} m / {shown(self.resolution)} m")
         for name in ("loop_radius", "loop_growth"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise InvalidOptionError(f"{name} must be a finite number >= 0; got {value!r}")
+                raise InvalidOptionError(f"{name} must be a finite number >= 0; got {shown(value)}")
         if self.loop_search is not None and not (isinstance(self.loop_search, (int, float))
                                                  and math.isfinite(self.loop_search) and self.loop_search >= 0):
-            raise InvalidOptionError(f"loop_search must be None or a finite number >= 0; got {self.loop_search!r}")
+            raise InvalidOptionError(f"loop_search must be None or a finite number >= 0; got {shown(self.loop_search)}")
         sd = np.asarray(self.odometry_sd, dtype=np.float64)
         if sd.shape != (5,) or not np.all(np.isfinite(sd)) or np.any(sd < 0) or sd[3] <= 0 or sd[4] <= 0:
             raise InvalidOptionError(f"odometry_sd must be 5 finite numbers >= 0, the floors > 0; "
-                                     f"got {self.odometry_sd!r}")
+                                     f"got {shown(self.odometry_sd)}")
 
 
 @dataclass

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import rasterize, room_scene
 
-from taichi_match import MapFileError, io
+from taichi_match import MapFileError, TaichiMatchError, io
 from taichi_match.cli import main
 
 
@@ -371,3 +371,20 @@ def test_an_image_named_in_a_subfolder_is_written_there_and_named_so_in_the_yaml
     io.write_ros_map(grid, tmp_path / "m.yaml", image="images/m.pgm")
     assert "image: images/m.pgm" in (tmp_path / "m.yaml").read_text()
     assert same_map(io.read_ros_map(tmp_path / "m.yaml"), grid)
+
+
+def test_error_messages_show_numpy_scalars_as_plain_numbers():
+    # NumPy 2's repr prints np.float64(nan): a message shows the number as the user typed it
+    from taichi_match import GridMap, Matcher, MatchOptions
+    from taichi_match.slam import SlamOptions
+
+    a = GridMap(np.zeros((30, 30)), 0.1)
+    calls = (lambda: Matcher().match(a, a, (0, 0, 0), search_window=(np.float64(np.nan), 1.0)),
+             lambda: GridMap(np.zeros((3, 3)), np.float64(-0.1)),
+             lambda: MatchOptions(blur=np.float64(-1.0)),
+             lambda: MatchOptions(levels=np.int64(0)),
+             lambda: SlamOptions(resolution=np.float64(-1.0)))
+    for call in calls:
+        with pytest.raises(TaichiMatchError) as info:
+            call()
+        assert "np." not in str(info.value) and "got" in str(info.value), str(info.value)
