@@ -62,16 +62,11 @@ class Matcher:
 
     Examples
     --------
-    >>> import numpy as np
-    >>> from taichi_match import GridMap, Matcher
-    >>> prob = np.full((80, 100), np.nan)
-    >>> prob[5:75, 5:95] = 0.0
-    >>> prob[5:75, [5, 94]] = 1.0
-    >>> prob[[5, 74], 5:95] = 1.0
-    >>> prob[30:50, 40:42] = 1.0
-    >>> room = GridMap(prob, resolution=0.05)
+    >>> from taichi_match import Matcher
+    >>> from taichi_match.scenes import room
+    >>> grid = room()
     >>> matcher = Matcher(levels=2)
-    >>> results = [matcher.match(room, room, guess) for guess in [(0.1, 0.0, 0.0), (0.0, -0.1, 0.02)]]
+    >>> results = [matcher.match(grid, grid, guess) for guess in [(0.1, 0.0, 0.0), (0.0, -0.1, 0.02)]]
     >>> [r.accepted for r in results]
     [True, True]
     """
@@ -219,15 +214,10 @@ def match(a: GridMap, b: GridMap, initial_pose: Optional[npt.ArrayLike] = None, 
     Examples
     --------
     >>> import numpy as np
-    >>> from taichi_match import GridMap, match
-    >>> prob = np.full((80, 100), np.nan)             # 4 m x 5 m at 0.05 m, unknown outside
-    >>> prob[5:75, 5:95] = 0.0                        # free inside
-    >>> prob[5:75, [5, 94]] = 1.0                     # walls
-    >>> prob[[5, 74], 5:95] = 1.0
-    >>> prob[30:50, 40:42] = 1.0                      # a pillar breaks the symmetry
-    >>> room = GridMap(prob, resolution=0.05)
-    >>> shifted = GridMap(prob, resolution=0.05, origin=(0.3, -0.2))   # the same room, 0.3 m right, 0.2 m down
-    >>> result = match(room, shifted, initial_pose=(-0.2, 0.1, 0.02))
+    >>> from taichi_match import match
+    >>> from taichi_match.scenes import room
+    >>> a, b = room(), room(origin=(0.3, -0.2))          # the same room, B's grid 0.3 m right, 0.2 m down
+    >>> result = match(a, b, initial_pose=(-0.2, 0.1, 0.02))
     >>> result.accepted, np.round(result.pose[:2], 1).tolist()
     (True, [-0.3, 0.2])
     """

@@ -51,14 +51,10 @@ class MatchResult:
     A room matched to itself from a guess a few cells off (see ``match``):
 
     >>> import numpy as np
-    >>> from taichi_match import GridMap, match
-    >>> prob = np.full((80, 100), np.nan)
-    >>> prob[5:75, 5:95] = 0.0
-    >>> prob[5:75, [5, 94]] = 1.0
-    >>> prob[[5, 74], 5:95] = 1.0
-    >>> prob[30:50, 40:42] = 1.0
-    >>> room = GridMap(prob, resolution=0.05)
-    >>> result = match(room, room, initial_pose=(0.1, -0.05, 0.03))
+    >>> from taichi_match import match
+    >>> from taichi_match.scenes import room
+    >>> grid = room()
+    >>> result = match(grid, grid, initial_pose=(0.1, -0.05, 0.03))
     >>> result.status.name, result.accepted, result.converged
     ('STEP', True, True)
     >>> sd = np.sqrt(np.diag(result.calibrated_covariance))    # metres, metres, radians

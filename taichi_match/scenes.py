@@ -4,7 +4,7 @@ import numpy as np
 
 from ._grid import GridMap
 
-__all__ = ["corridor", "parallel_corridors_y", "noisy_copy"]
+__all__ = ["corridor", "room", "parallel_corridors_y", "noisy_copy"]
 
 
 def corridor(*, size=12.0, resolution=0.025, width=6.0, wall=0.05, free=0.0, occupied=1.0):
@@ -23,6 +23,20 @@ def corridor(*, size=12.0, resolution=0.025, width=6.0, wall=0.05, free=0.0, occ
     row[(np.abs(y) >= half) & (np.abs(y) < half + wall)] = occupied
     prob = np.repeat(row[:, None], n, axis=1)
     return GridMap(prob, resolution, grid.origin)
+
+
+def room(*, origin=(0.0, 0.0)) -> GridMap:
+    """A small room for examples: 4.5 x 3.5 m of free space inside one-cell walls, a pillar and
+    nothing else, on an 80 x 100 grid at 0.05 m with unknown outside; ``origin`` is the grid's.
+
+    The pillar breaks the room's symmetry, so the room matches itself at one pose only.
+    """
+    prob = np.full((80, 100), np.nan)
+    prob[5:75, 5:95] = 0.0                      # free inside
+    prob[5:75, [5, 94]] = 1.0                   # walls
+    prob[[5, 74], 5:95] = 1.0
+    prob[30:50, 40:42] = 1.0                    # the pillar
+    return GridMap(prob, 0.05, origin)
 
 
 def parallel_corridors_y(*, width=6.0, wall=0.05):
