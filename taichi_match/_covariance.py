@@ -8,6 +8,15 @@ centroid; a scalar L means M = diag(1, 1, L)): a direction whose curvature is be
 at ``floor_rtol`` times the largest (and at an absolute ``floor_abs``) before inversion, so an
 unconstrained direction shows as a very large but finite variance, never NaN.
 
+Before that, each cross term is clipped to the bound a positive semi-definite matrix obeys,
+|H_ij| <= sqrt(H_ii H_jj) (negative curvatures taken as 0). The stencil's cross terms are
+differences of four evaluations and carry noise the diagonal does not show: on the paper's
+corridor H_xx is 0 (x is free) while H_x,theta came out +-1461, about 1e-3 of H_theta,theta. That
+tilts the free direction off x by 6e-4 rad per metre, and the floored eigenvalue's huge variance
+leaked through the tilt into theta: a standard deviation of 0.03-0.05 rad where theta's own
+curvature gives 7e-4 (and the matches' theta errors are 1e-4). Clipped, the free direction is x
+and theta keeps its own.
+
 The calibrated covariance (``MatchResult.calibrated_covariance``) scales H^-1 with the residual
 and adds the covariance of the plateau of e, an error the Hessian cannot see (``plateau_sd``,
 ``covariance_floor``).
@@ -61,7 +70,11 @@ def covariance_from_hessian(hessian, metric, *, scale=1.0, degenerate_rtol=1e-3,
     m = np.diag([1.0, 1.0, float(metric)]) if np.ndim(metric) == 0 else np.asarray(metric, dtype=np.float64)
     m_inv = np.linalg.inv(m)
     hz = m_inv.T @ h @ m_inv
-    evals, evecs = np.linalg.eigh(0.5 * (hz + hz.T))
+    hz = 0.5 * (hz + hz.T)
+    root = np.sqrt(np.maximum(np.diag(hz), 0.0))
+    bound = np.outer(root, root)
+    hz = np.where(np.eye(3, dtype=bool), hz, np.clip(hz, -bound, bound))
+    evals, evecs = np.linalg.eigh(hz)
     top = max(float(evals.max()), 0.0)
     floor = max(floor_rtol * top, floor_abs)
     cov_z = (evecs / np.maximum(evals, floor)) @ evecs.T

@@ -26,6 +26,25 @@ def test_corridor_like_singular_hessian_gives_huge_finite_variance_along_the_fre
     assert np.allclose(degenerate, [[1.0, 0.0, 0.0]])
 
 
+def test_noisy_cross_terms_of_a_free_direction_do_not_leak_its_variance():
+    # The paper's corridor as the stencil measured it (a match of the corridor on itself): x free
+    # (H_xx = 0) but H_x,theta = -1461, which no positive semi-definite matrix allows. The free
+    # direction must stay x, and y and theta keep the variances of their own 2 x 2 block.
+    h = np.array([[0.0, -4.8e-5, -1461.0], [-4.8e-5, 1.717e5, -3.104e4], [-1461.0, -3.104e4, 2.26e6]])
+    cov, degenerate = covariance_from_hessian(h, metric=2.5)
+    block = np.linalg.inv(h[1:, 1:])
+    assert np.allclose(cov[1:, 1:], block, rtol=1e-6)
+    assert np.allclose(degenerate, [[1.0, 0.0, 0.0]])
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+def test_cross_terms_within_the_bound_are_kept():
+    # a positive definite H is inverted as it is, however strong its correlations
+    h = np.array([[1.0, 0.99, 0.0], [0.99, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    cov, degenerate = covariance_from_hessian(h, metric=1.0)
+    assert np.allclose(cov, np.linalg.inv(h)) and degenerate.shape == (0, 3)
+
+
 def test_indefinite_hessian_flags_the_negative_direction_and_stays_positive_definite():
     h = np.array([[-5.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]])
     cov, degenerate = covariance_from_hessian(h, 1.0)
