@@ -262,6 +262,18 @@ class PreparedMap:
             self._coarser = PreparedMap(coarse, self.blur_width * self.blur_growth, self.blur_kind, self.blur_growth)
         return self._coarser
 
+    def share_coarser(self, older: "PreparedMap"):
+        """Take the pyramid above this level from ``older``, an earlier version of the same map
+        prepared with the same blur and resolution (a submap before its latest scan): only this
+        level is then prepared. The coarse levels only bring the optimiser into the basin; the
+        finest decides the pose."""
+        same = (older.resolution, older.blur_width, older.blur_kind, older.blur_growth, older._code is None)
+        if same != (self.resolution, self.blur_width, self.blur_kind, self.blur_growth, self._code is None):
+            raise ValueError("the coarse levels must come from a map prepared with the same blur, evidence and "
+                             "resolution")
+        if self._coarser is None and self._ready == 0:
+            self._coarser = older.coarser()
+
     def ready(self, levels: int):
         """Make now what a match through ``levels`` pyramid levels reads of this map in either
         role: the levels, the verdict's wall distances, the rows of known cells and their moments

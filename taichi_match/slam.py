@@ -100,12 +100,13 @@ ODOMETRY_GATE = 16.27            # chi-square, 3 degrees of freedom, 99.9 %
 SCAN_MAX_UNCERTAINTY_M = 0.15
 NEIGHBOUR_PATH = 15.0            # metres of travel: loop closures this close at both ends vote
 # A loop-closure candidate is matched only when at least this share of the new submap's known
-# cells (every 5th) lands on known cells of the older one at the guess. On fhw, csail and aces,
-# 37-48 % of the candidates within the radius share less than 1 % and none of them was accepted
-# (the smallest share among the 691 accepted: 0.038), while their matches took a third of the
-# loop-closing time (fhw 2.8 of 8.4 s). Skipping them (0.36 ms a check on cached footprints)
-# took fhw's loop-closing stage to 0.79 of its time, poses bit-identical (two runs each, one process).
-LOOP_MIN_OVERLAP = 0.01
+# cells (every 5th) lands on known cells of the older one at the guess (0.36 ms a check on cached
+# footprints). Over the eight shared logs at default options (2026-12-03), of the candidates
+# matched at a threshold of 0.01, those sharing 0.01-0.03 were 218 of 2,693 and gave one accepted
+# closure (seattle's, wrong against the reference), those sharing 0.03-0.05 gave 5 of 135 (3
+# right). Below 0.01 (measured before): 37-48 % of the candidates within the radius on fhw, csail
+# and aces, none accepted, a third of the loop-closing time.
+LOOP_MIN_OVERLAP = 0.03
 # An older submap is cast again before a loop-closure match when the graph has moved one of its
 # scans, in its frame, by more than this many cells along x or y or this many radians since its
 # last cast (module docstring). On the simulated run 21 casts again for 168 candidates, on fhw 148
@@ -141,6 +142,17 @@ class SlamOptions:
         per submap, when it becomes the target: faster, median ATE over five runs per log lower
         on five of nine (fhw 0.156 -> 0.101 m) but orebro's 0.119 -> 0.269 and edmonton's
         0.147 -> 0.211 (bench/SLAM_target_refresh5.md against bench/SLAM.md, 2026-12-03).
+    share_coarse : when the front end's target is cast again within one submap (``target_refresh``),
+        only its finest level is prepared anew and its coarser pyramid levels are those of its cast
+        when it became the target (``Matcher.prepare(coarse_from=...)``; cast whole again after each
+        optimisation). Not the default: over five runs per log (2026-12-03, one process after the
+        other, against the same revision without it) the front-end match median fell on all nine
+        (aces 11.2 -> 8.1 ms, edmonton 19.9 -> 12.4, fhw 10.7 -> 7.6, freiburg-101 15.5 -> 14.6; one
+        run each, and runs giving the same poses differed by 20 % in time that day) and aces did not
+        derail (median ATE 0.123 -> 0.109 m, max 1.43 -> 0.18), but orebro's median ATE rose 0.137
+        -> 0.166 m (max 0.163 -> 0.237), its RPE over 10 scans 0.084 -> 0.099 m, csail's 0.076 ->
+        0.084, and freiburg-101's wrong loop closures 29 -> 43 (median). ``target_refresh`` 5, whose
+        coarse and finest levels both miss the latest scans, cost orebro too.
     max_ray_length : beams are cut there (metres) in submaps and scans.
     odometry_sd : (metres per metre travelled, radians per radian turned, radians per metre,
         metres floor, radians floor): the standard deviations of an odometry step's translation
@@ -174,6 +186,7 @@ class SlamOptions:
     resolution: float = 0.05
     submap_scans: int = 10
     target_refresh: int = 1
+    share_coarse: bool = False
     max_ray_length: float = 20.0
     odometry_sd: tuple = (0.02, 0.02, math.radians(0.3), 0.005, math.radians(0.1))
     loop_radius: float = 3.0
@@ -189,7 +202,7 @@ class SlamOptions:
         if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)
                 and self.target_refresh >= 1):
             raise InvalidOptionError(f"target_refresh must be an integer >= 1; got {self.target_refresh!r}")
-        for name in ("loop_consistency", "submap_frames"):
+        for name in ("loop_consistency", "submap_frames", "share_coarse"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
@@ -402,6 +415,7 @@ class Slam:
         # submap index -> (BeamCounts, scans counted), since the last optimisation
         self._counts = {}
         target_cast = None                      # (submap, scan, grid): the front end's target as last cast
+        coarse = None                           # its PreparedMap when cast whole (see the module docstring)
         for k in range(1, n):
             delta = compose(inverse(odo[k - 1]), odo[k])
             travelled[k] = travelled[k - 1] + math.hypot(delta[0], delta[1])
@@ -412,17 +426,24 @@ class Slam:
             # a scan without one usable reading (or a submap of such scans) is not matched
             if usable[k] and castable[target.scans].any():
                 t0 = time.perf_counter()
-                if target_cast is None or target_cast[0] is not target or k - target_cast[1] >= opts.target_refresh:
+                preparing = 0.0                           # preparing the target: the match's time
+                whole = target_cast is None or target_cast[0] is not target
+                if whole or k - target_cast[1] >= opts.target_refresh:
                     target_cast = (target, k, self._submap_grid(log, target, est, castable))
+                    t = time.perf_counter()
+                    shared = None if whole or not opts.share_coarse else coarse
+                    prepared = self._scan_matcher.prepare(target_cast[2], coarse_from=shared)
+                    coarse = prepared if whole else coarse
+                    preparing = time.perf_counter() - t
                 t1 = time.perf_counter()
                 scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
                                           model=self._scan_model)
                 t2 = time.perf_counter()
                 res = self._scan_matcher.match(target_cast[2], scan_grid, compose(inverse(est[target.key]), pred))
-                match_seconds.append(res.seconds)
-                seconds["submap grids"] += t1 - t0
+                match_seconds.append(res.seconds + preparing)
+                seconds["submap grids"] += t1 - t0 - preparing
                 seconds["scan grids"] += t2 - t1
-                seconds["scan matching"] += time.perf_counter() - t2
+                seconds["scan matching"] += time.perf_counter() - t2 + preparing
                 tried += 1
             verdict = res is not None and scan_accepted(res)
             gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.key]), pred),

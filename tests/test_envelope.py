@@ -555,3 +555,31 @@ def test_known_cells_moments_equal_the_listed_cells(rng):
         rms = np.sqrt(np.mean(np.sum((centres - centroid) ** 2, 1)))
         assert prepared.spread == pytest.approx(max(rms, 0.05), rel=1e-12)
         assert prepared.radius == pytest.approx(max(np.sqrt(np.mean(np.sum(centres**2, 1))), 0.05), rel=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. Coarse levels taken from an earlier version of the map (the mapping loop's target)
+
+
+def test_a_map_can_take_its_coarse_levels_from_an_earlier_version(room_pair):
+    a, b = room_pair
+    prob = a.prob.copy()
+    prob[:, 120:] = np.nan                         # the earlier version: the right part not yet seen
+    older = GridMap(prob, a.resolution, a.origin)
+    matcher = tm.Matcher()
+    old = matcher.prepare(older)
+    new = matcher.prepare(a, coarse_from=old)
+    assert new.level(1) is old.level(1) and new.level(2) is old.level(2)
+    fresh = tm.Matcher().prepare(a)
+    assert np.array_equal(new.conflict, fresh.conflict)          # the given level is its own
+    assert not np.array_equal(new.level(1).conflict, fresh.level(1).conflict)
+    res = matcher.match(a, b, np.array(TRUTH) + (0.2, -0.15, 0.08))
+    assert res.accepted
+    assert np.hypot(*(res.pose[:2] - TRUTH[:2])) <= 2 * 0.05 and abs(np.degrees(res.pose[2] - TRUTH[2])) <= 0.5
+
+
+def test_coarse_levels_must_come_from_the_same_blur(room_pair):
+    a, _ = room_pair
+    other = tm.Matcher(blur=0.2).prepare(a)
+    with pytest.raises(ValueError, match="same blur"):
+        tm.Matcher().prepare(GridMap(a.prob.copy(), a.resolution, a.origin), coarse_from=other)

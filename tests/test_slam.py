@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from taichi_match import InvalidOptionError, LogFormatError
+from taichi_match import InvalidOptionError, LogFormatError, Matcher
 from taichi_match.cli import main
 from taichi_match.evaluation import trajectory_errors
 from taichi_match.logs import LaserLog, read_carmen, read_tum, write_carmen
@@ -230,7 +230,7 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("loop_radius", -1.0), ("odometry_sd", (0.1, 0.1)),
                                           ("odometry_sd", (0.1, 0.1, 0.1, 0.0, 0.1)), ("max_ray_length", math.nan),
                                           ("target_refresh", 0), ("target_refresh", 2.0), ("target_refresh", True),
-                                          ("loop_consistency", 1)])
+                                          ("loop_consistency", 1), ("share_coarse", 1)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
@@ -266,6 +266,30 @@ def test_target_is_cast_again_after_target_refresh_scans(short_run, monkeypatch,
     assert len(casts) == expected
     if refresh == 1:
         assert len(casts) == len(matched)
+
+
+@pytest.mark.parametrize("share", [False, True])
+def test_share_coarse_prepares_only_the_finest_level_between_whole_casts(short_run, monkeypatch, share):
+    """With ``share_coarse`` every cast of the front end's target but the first of each period
+    (a new target, or the first after an optimisation) takes its coarser levels from that first
+    cast's; without it none does. Counted against the scans matched, independently."""
+    shared = []
+    original = Matcher.prepare
+
+    def recording(self, grid, *args, coarse_from=None, **kwargs):
+        prepared = original(self, grid, *args, coarse_from=coarse_from, **kwargs)
+        if coarse_from is not None:
+            shared.append(prepared.level(1) is coarse_from.level(1) and prepared.level(2) is coarse_from.level(2))
+        return prepared
+
+    monkeypatch.setattr(Matcher, "prepare", recording)
+    result = Slam(share_coarse=share).run(short_run.log)
+    size, half = result.options.submap_scans, result.options.submap_scans // 2
+    matched = [s["scan"] for s in result.scans if s["pose"] is not None]
+    periods = {max(0, (k - size) // half + 1) for k in matched}
+    assert shared == ([True] * (len(matched) - len(periods)) if share else [])
+    accepted, tried = result.scan_matches
+    assert accepted >= 0.9 * tried
 
 
 def test_loop_closures_vote_on_a_new_one():
