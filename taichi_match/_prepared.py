@@ -269,8 +269,8 @@ class PreparedMap:
         finest decides the pose."""
         same = (older.resolution, older.blur_width, older.blur_kind, older.blur_growth, older._code is None)
         if same != (self.resolution, self.blur_width, self.blur_kind, self.blur_growth, self._code is None):
-            raise ValueError("the coarse levels must come from a map prepared with the same blur, evidence and "
-                             "resolution")
+            raise InvalidOptionError("the coarse levels must come from a map prepared with the same blur, evidence "
+                                     "and resolution")
         if self._coarser is None and self._ready == 0:
             self._coarser = older.coarser()
 
