@@ -121,6 +121,12 @@ LOOP_SEARCH_ARM = 10.0
 # the drift bound (``loop_growth`` times the distance travelled) reaches 10 m and more, whose
 # windows took seconds per candidate on laser submaps (a run of aces did not end in 20 minutes).
 LOOP_SEARCH_MAX = 2.5
+# With ``crop_target``, the front end's target is cast only within the box the scan's grid covers
+# at the guess, widened by this many metres plus this many radians times the farthest corner of
+# the scan's grid from the scan (where a rotation moves it most): a match that moves farther from
+# the odometry's guess fails the odometry gate anyway.
+CROP_METRES = 1.0
+CROP_RADIANS = 0.05
 
 
 def scan_accepted(result) -> bool:
@@ -153,6 +159,15 @@ class SlamOptions:
         -> 0.166 m (max 0.163 -> 0.237), its RPE over 10 scans 0.084 -> 0.099 m, csail's 0.076 ->
         0.084, and freiburg-101's wrong loop closures 29 -> 43 (median). ``target_refresh`` 5, whose
         coarse and finest levels both miss the latest scans, cost orebro too.
+    crop_target : when the front end's target is cast for one scan (``target_refresh`` 1, without
+        ``share_coarse``), cast it only around where the scan can land: the box its grid covers at
+        the odometry's guess, widened by ``CROP_METRES`` and ``CROP_RADIANS`` (``footprint_bounds``),
+        so that the target's preparation follows the scan's reach, not the submap's size. Not the
+        default: on the shared logs (submaps of 10 scans) the crop holds half the target's cells
+        (median, seattle) and the front-end match median fell 5-20 % (seattle 13.5-15.5 -> 11.0-12.1 ms,
+        two runs each, alternating), no aces run derailed, but over ten runs per log the median ATE
+        rose on orebro (0.125 -> 0.140 m, max 0.163 -> 0.274) and fhw (0.132 -> 0.144) and fell on
+        belgioioso (0.143 -> 0.133) (bench/SLAM_crop_target.md, 2026-12-03).
     max_ray_length : beams are cut there (metres) in submaps and scans.
     odometry_sd : (metres per metre travelled, radians per radian turned, radians per metre,
         metres floor, radians floor): the standard deviations of an odometry step's translation
@@ -187,6 +202,7 @@ class SlamOptions:
     submap_scans: int = 10
     target_refresh: int = 1
     share_coarse: bool = False
+    crop_target: bool = False
     max_ray_length: float = 20.0
     odometry_sd: tuple = (0.02, 0.02, math.radians(0.3), 0.005, math.radians(0.1))
     loop_radius: float = 3.0
@@ -202,7 +218,7 @@ class SlamOptions:
         if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)
                 and self.target_refresh >= 1):
             raise InvalidOptionError(f"target_refresh must be an integer >= 1; got {self.target_refresh!r}")
-        for name in ("loop_consistency", "submap_frames", "share_coarse"):
+        for name in ("loop_consistency", "submap_frames", "share_coarse", "crop_target"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
@@ -341,15 +357,16 @@ class Slam:
         """(S,) bool: whether each scan has a reading the submaps would cast."""
         return np.array([len(beam_segments([scan], np.zeros((1, 3)), self._map_model)[0]) > 0 for scan in log.scans])
 
-    def _submap_grid(self, log, submap, est, cast=None):
-        grid, _ = self._cast_submap(log, submap, est, cast)
+    def _submap_grid(self, log, submap, est, cast=None, bounds=None):
+        grid, _ = self._cast_submap(log, submap, est, cast, bounds)
         return grid
 
-    def _cast_submap(self, log, submap, est, cast=None):
+    def _cast_submap(self, log, submap, est, cast=None, bounds=None):
         """The submap's scans (those with ``cast`` true) cast at their estimates in its frame:
         (grid, (scans, poses in the frame)). Between two optimisations the estimates stay put, so
         the beam counts of a submap cast before are kept (``_counts``) and only its scans not yet
-        in them are cast: the same grid, bit for bit (``BeamCounts``), as casting them all."""
+        in them are cast: the same grid, bit for bit (``BeamCounts``), as casting them all.
+        ``bounds``: only the grid's cells within that box of the frame (``BeamCounts.grid``)."""
         scans = submap.scans if cast is None else [j for j in submap.scans if cast[j]]
         origin = inverse(est[submap.key])
         poses = np.array([compose(origin, est[j]) for j in scans])
@@ -360,7 +377,7 @@ class Slam:
         new = [i for i, j in enumerate(scans) if j not in added]
         counts.add([log.scans[scans[i]] for i in new], poses[new])
         added.update(scans[i] for i in new)
-        return counts.grid(), (scans, poses)
+        return counts.grid(bounds), (scans, poses)
 
     def _member_edge(self, gtsam, graph, submap, k, est):
         """The edge that ties scan ``k`` to the frame of a submap it lies in when no match of ``k``
@@ -416,6 +433,7 @@ class Slam:
         self._counts = {}
         target_cast = None                      # (submap, scan, grid): the front end's target as last cast
         coarse = None                           # its PreparedMap when cast whole (see the module docstring)
+        crop = opts.crop_target and opts.target_refresh == 1 and not opts.share_coarse
         for k in range(1, n):
             delta = compose(inverse(odo[k - 1]), odo[k])
             travelled[k] = travelled[k - 1] + math.hypot(delta[0], delta[1])
@@ -426,25 +444,31 @@ class Slam:
             # a scan without one usable reading (or a submap of such scans) is not matched
             if usable[k] and castable[target.scans].any():
                 t0 = time.perf_counter()
+                scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
+                                          model=self._scan_model)
+                guess = compose(inverse(est[target.key]), pred)
+                t1 = time.perf_counter()
                 preparing = 0.0                           # preparing the target: the match's time
                 whole = target_cast is None or target_cast[0] is not target
-                if whole or k - target_cast[1] >= opts.target_refresh:
+                if crop:                                  # None: the scan cannot land on the submap
+                    cropped = self._submap_grid(log, target, est, castable, footprint_bounds(scan_grid, guess))
+                    target_cast = None if cropped is None else (target, k, cropped)
+                elif whole or k - target_cast[1] >= opts.target_refresh:
                     target_cast = (target, k, self._submap_grid(log, target, est, castable))
+                if target_cast is not None and target_cast[1] == k:
                     t = time.perf_counter()
                     shared = None if whole or not opts.share_coarse else coarse
                     prepared = self._scan_matcher.prepare(target_cast[2], coarse_from=shared)
                     coarse = prepared if whole else coarse
                     preparing = time.perf_counter() - t
-                t1 = time.perf_counter()
-                scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
-                                          model=self._scan_model)
                 t2 = time.perf_counter()
-                res = self._scan_matcher.match(target_cast[2], scan_grid, compose(inverse(est[target.key]), pred))
-                match_seconds.append(res.seconds + preparing)
-                seconds["submap grids"] += t1 - t0 - preparing
-                seconds["scan grids"] += t2 - t1
+                res = None if target_cast is None else self._scan_matcher.match(target_cast[2], scan_grid, guess)
+                if res is not None:
+                    match_seconds.append(res.seconds + preparing)
+                    tried += 1
+                seconds["scan grids"] += t1 - t0
+                seconds["submap grids"] += t2 - t1 - preparing
                 seconds["scan matching"] += time.perf_counter() - t2 + preparing
-                tried += 1
             verdict = res is not None and scan_accepted(res)
             gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.key]), pred),
                                                            est[k - 1], est[target.key], delta)
@@ -595,6 +619,17 @@ class Slam:
                 cov = _tangent_covariance(res.pose, res.calibrated_covariance)
                 graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return out
+
+
+def footprint_bounds(grid, pose, metres: float = CROP_METRES, radians: float = CROP_RADIANS):
+    """(x_min, y_min, x_max, y_max): the box that ``grid`` covers when placed at ``pose`` (its
+    frame in the other's), widened by ``metres`` plus ``radians`` times the distance of its
+    farthest corner from its frame's origin."""
+    x0, x1, y0, y1 = grid.extent
+    corners = np.array([[x0, y0], [x1, y0], [x0, y1], [x1, y1]])
+    placed = transform_points(pose, corners)
+    margin = metres + radians * float(np.hypot(corners[:, 0], corners[:, 1]).max())
+    return (*(placed.min(axis=0) - margin), *(placed.max(axis=0) + margin))
 
 
 class Footprint:

@@ -405,6 +405,30 @@ def test_beam_counts_added_scan_by_scan_are_the_grid_of_all_scans(engine):
         BeamCounts().grid()
 
 
+def test_beam_counts_within_bounds_are_the_window_of_the_whole_grid():
+    """``BeamCounts.grid(bounds)`` is the whole grid's cells that the box touches, bit for bit,
+    with its corner on them; a box beside the canvas gives None, a malformed one an error."""
+    poses = np.array([[0.0, 0.0, 0.0], [1.1, 0.4, 0.6], [-1.7, -0.9, 2.5]])
+    counts = BeamCounts(resolution=0.1).add(room_scans(poses), poses)
+    whole = counts.grid()
+    x0, x1, y0, y1 = whole.extent
+    for box in [(x0 + 1.03, y0 + 0.47, x1 - 2.21, y1 - 0.05), (x0 - 5.0, y0 - 5.0, x0 + 0.01, y1 + 5.0),
+                (x0 + 2.03, y0 + 2.04, x0 + 2.03, y0 + 2.04), (x0 - 1.0, y0 - 1.0, x1 + 1.0, y1 + 1.0)]:
+        part = counts.grid(box)
+        # the cells whose square meets the box, counted independently from the corners
+        r0 = max(int(np.floor((box[1] - y0) / 0.1 + 1e-9)), 0)
+        c0 = max(int(np.floor((box[0] - x0) / 0.1 + 1e-9)), 0)
+        r1 = min(int(np.floor((box[3] - y0) / 0.1 + 1e-9)) + 1, whole.shape[0])
+        c1 = min(int(np.floor((box[2] - x0) / 0.1 + 1e-9)) + 1, whole.shape[1])
+        assert part.shape == (r1 - r0, c1 - c0)
+        np.testing.assert_array_equal(part.prob, whole.prob[r0:r1, c0:c1])
+        np.testing.assert_allclose(part.corner_pose, (x0 + 0.1 * c0, y0 + 0.1 * r0, 0.0), atol=1e-9)
+    assert counts.grid((x1 + 1.0, y0, x1 + 2.0, y1)) is None
+    for bad in [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 1.0), (np.nan, 0.0, 1.0, 1.0), "abcd"]:
+        with pytest.raises(InvalidOptionError, match="bounds"):
+            counts.grid(bad)
+
+
 def test_beams_without_a_return_are_free_up_to_no_return_length():
     pose = np.array([[0.2, -0.3, 0.4]])
     scan = Scan(0.0, np.full(181, 30.0), ANGLES, pose[0], 30.0)          # nothing within range

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from taichi_match import InvalidOptionError, LogFormatError, Matcher
+from taichi_match import InvalidOptionError, LogFormatError, Matcher, transform_points
 from taichi_match.cli import main
 from taichi_match.evaluation import trajectory_errors
 from taichi_match.logs import LaserLog, read_carmen, read_tum, write_carmen
@@ -244,10 +244,10 @@ def test_target_is_cast_again_after_target_refresh_scans(short_run, monkeypatch,
     casts = []
     original = Slam._submap_grid
 
-    def counting(self, log, submap, est, cast=None):
+    def counting(self, log, submap, est, cast=None, bounds=None):
         if cast is not None:                       # the front end's target (loop closing passes none)
             casts.append(submap.index)
-        return original(self, log, submap, est, cast)
+        return original(self, log, submap, est, cast, bounds)
 
     monkeypatch.setattr(Slam, "_submap_grid", counting)
     result = Slam(target_refresh=refresh).run(short_run.log)
@@ -290,6 +290,40 @@ def test_share_coarse_prepares_only_the_finest_level_between_whole_casts(short_r
     assert shared == ([True] * (len(matched) - len(periods)) if share else [])
     accepted, tried = result.scan_matches
     assert accepted >= 0.9 * tried
+
+
+def test_the_front_end_target_is_cropped_around_the_scan(short_run, monkeypatch):
+    """With ``crop_target`` the front end matches each scan against the part of its
+    target around where the scan lands: mostly smaller than the whole cast, and holding every cell
+    of the whole cast that a known cell of the scan lands on at the pose the match accepted;
+    without it, the whole cast."""
+    casts = []
+    original = Slam._submap_grid
+
+    def recording(self, log, submap, est, cast=None, bounds=None):
+        grid = original(self, log, submap, est, cast, bounds)
+        if cast is not None:                       # the front end's target (loop closing passes none)
+            casts.append((grid, original(self, log, submap, est, cast)))
+        return grid
+
+    monkeypatch.setattr(Slam, "_submap_grid", recording)
+    for crop in (False, True):
+        casts.clear()
+        slam = Slam(crop_target=crop)
+        matches = []
+        match = slam._scan_matcher.match
+        slam._scan_matcher.match = lambda a, b, guess: matches.append((b, match(a, b, guess))) or matches[-1][1]
+        result = slam.run(short_run.log)
+        assert len(casts) == len(matches) == result.scan_matches[1]
+        smaller = sum(grid.prob.size < whole.prob.size for grid, whole in casts)
+        assert smaller >= 0.5 * len(casts) if crop else smaller == 0
+        for (grid, whole), (b, res) in zip(casts, matches):
+            if res.accepted:
+                points = transform_points(res.pose, b.cell_centres(*np.nonzero(b.known)))
+                rows, cols = whole.cell_of(points)
+                on = (rows >= 0) & (cols >= 0) & (rows < whole.shape[0]) & (cols < whole.shape[1])
+                rows, cols = grid.cell_of(points[on])
+                assert rows.min() >= 0 and cols.min() >= 0 and rows.max() < grid.shape[0] and cols.max() < grid.shape[1]
 
 
 def test_loop_closures_vote_on_a_new_one():
