@@ -357,6 +357,8 @@ def _slam(args):
                                                ("max_ray_length", args.max_ray),
                                                ("target_refresh", args.target_refresh),
                                                ("submap_frames", args.submap_frames or None),
+                                               ("share_coarse", args.share_coarse or None),
+                                               ("crop_target", args.crop_target or None),
                                                ("loop_search", args.loop_search))
                              if v is not None})
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
@@ -594,6 +596,12 @@ def main(argv=None):
                            "(see SlamOptions.loop_search)")
     slam.add_argument("--submap-frames", action="store_true",
                       help="give each submap its own node in the pose graph (see SlamOptions.submap_frames)")
+    slam.add_argument("--share-coarse", action="store_true",
+                      help="prepare only the finest level of the front end's target for each scan, its coarser "
+                           "levels once per target (see SlamOptions.share_coarse)")
+    slam.add_argument("--crop-target", action="store_true",
+                      help="cast the front end's target only around where each scan can land "
+                           "(see SlamOptions.crop_target)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
     slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
     slam.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")

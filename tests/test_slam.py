@@ -183,6 +183,18 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
     assert values.size() == len(short_run.log) + (len(short_run.log) - 1) // half + 1
 
 
+@pytest.mark.parametrize("flag, field", [("--share-coarse", "share_coarse"), ("--crop-target", "crop_target")])
+def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field):
+    """The speed options' flags set their field of the run's options (recorded in report.md),
+    which is off without them."""
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    for args, value in (([flag], True), ([], False)):
+        out = tmp_path / f"out{value}"
+        assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
+        assert f"{field}={value}" in (out / "report.md").read_text()
+
+
 def test_carmen_round_trip(short_run, tmp_path):
     path = tmp_path / "run.log"
     write_carmen(path, short_run.log)
