@@ -159,8 +159,8 @@ class SlamOptions:
         -> 0.166 m (max 0.163 -> 0.237), its RPE over 10 scans 0.084 -> 0.099 m, csail's 0.076 ->
         0.084, and freiburg-101's wrong loop closures 29 -> 43 (median). ``target_refresh`` 5, whose
         coarse and finest levels both miss the latest scans, cost orebro too.
-    crop_target : when the front end's target is cast for one scan (``target_refresh`` 1, without
-        ``share_coarse``), cast it only around where the scan can land: the box its grid covers at
+    crop_target : cast the front end's target for each scan only around where the scan can land
+        (with ``target_refresh`` 1 and without ``share_coarse``, or ``InvalidOptionError``): the box its grid covers at
         the odometry's guess, widened by ``CROP_METRES`` and ``CROP_RADIANS`` (``footprint_bounds``),
         so that the target's preparation follows the scan's reach, not the submap's size. Not the
         default: on the shared logs (submaps of 10 scans) the crop holds half the target's cells
@@ -221,6 +221,9 @@ class SlamOptions:
         for name in ("loop_consistency", "submap_frames", "share_coarse", "crop_target"):
             if not isinstance(getattr(self, name), bool):
                 raise InvalidOptionError(f"{name} must be True or False; got {getattr(self, name)!r}")
+        if self.crop_target and (self.target_refresh != 1 or self.share_coarse):
+            raise InvalidOptionError("crop_target casts the front end's target around each scan: it needs "
+                                     "target_refresh 1 and share_coarse False")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {shown(self.submap_scans)}")
         for name in ("resolution", "max_ray_length", "robust_kernel"):
@@ -433,7 +436,6 @@ class Slam:
         self._counts = {}
         target_cast = None                      # (submap, scan, grid): the front end's target as last cast
         coarse = None                           # its PreparedMap when cast whole (see the module docstring)
-        crop = opts.crop_target and opts.target_refresh == 1 and not opts.share_coarse
         for k in range(1, n):
             delta = compose(inverse(odo[k - 1]), odo[k])
             travelled[k] = travelled[k - 1] + math.hypot(delta[0], delta[1])
@@ -450,7 +452,7 @@ class Slam:
                 t1 = time.perf_counter()
                 preparing = 0.0                           # preparing the target: the match's time
                 whole = target_cast is None or target_cast[0] is not target
-                if crop:                                  # None: the scan cannot land on the submap
+                if opts.crop_target:                      # None: the scan cannot land on the submap
                     cropped = self._submap_grid(log, target, est, castable, footprint_bounds(scan_grid, guess))
                     target_cast = None if cropped is None else (target, k, cropped)
                 elif whole or k - target_cast[1] >= opts.target_refresh:

@@ -304,6 +304,13 @@ def test_share_coarse_prepares_only_the_finest_level_between_whole_casts(short_r
     assert accepted >= 0.9 * tried
 
 
+@pytest.mark.parametrize("other", [{"target_refresh": 2}, {"share_coarse": True}])
+def test_crop_target_refuses_a_target_kept_between_scans(other):
+    with pytest.raises(InvalidOptionError, match="crop_target"):
+        SlamOptions(crop_target=True, **other)
+    SlamOptions(crop_target=False, **other)
+
+
 def test_the_front_end_target_is_cropped_around_the_scan(short_run, monkeypatch):
     """With ``crop_target`` the front end matches each scan against the part of its
     target around where the scan lands: mostly smaller than the whole cast, and holding every cell
