@@ -160,9 +160,10 @@ class SlamOptions:
         0.084, and freiburg-101's wrong loop closures 29 -> 43 (median). ``target_refresh`` 5, whose
         coarse and finest levels both miss the latest scans, cost orebro too.
     crop_target : cast the front end's target for each scan only around where the scan can land
-        (with ``target_refresh`` 1 and without ``share_coarse``, or ``InvalidOptionError``): the box its grid covers at
-        the odometry's guess, widened by ``CROP_METRES`` and ``CROP_RADIANS`` (``footprint_bounds``),
-        so that the target's preparation follows the scan's reach, not the submap's size. Not the
+        (with ``target_refresh`` 1 and without ``share_coarse``, or ``InvalidOptionError``): the box
+        its grid covers at the odometry's guess, widened by ``CROP_METRES`` and ``CROP_RADIANS``
+        (``footprint_bounds``), so that the target's preparation follows the scan's reach, not the
+        submap's size. Not the
         default: on the shared logs (submaps of 10 scans) the crop holds half the target's cells
         (median, seattle) and the front-end match median fell 5-20 % (seattle 13.5-15.5 -> 11.0-12.1 ms,
         two runs each, alternating), no aces run derailed, but over ten runs per log the median ATE
