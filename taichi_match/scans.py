@@ -189,6 +189,7 @@ class BeamCounts:
         self.resolution, self.model, self.margin, self.engine = resolution, model, margin, engine
         self._offset = np.zeros(2, dtype=np.int64)    # lattice (row, col) of the arrays' cell [0, 0]
         self._hits = self._misses = np.zeros((0, 0), dtype=np.int32)
+        self._grid = None                             # the whole grid, until a beam is added
 
     def add(self, scans, poses) -> "BeamCounts":
         """Cast ``scans`` taken at ``poses`` (S, 3) in the grid's frame into the counts."""
@@ -216,15 +217,19 @@ class BeamCounts:
             self._hits, self._misses, self._offset = hits, misses, lo
         count_traversals(starts, ends, hit, tuple(self._offset), self.resolution, shape, self.engine, scan,
                          out=(self._hits, self._misses))
+        self._grid = None
         return self
 
     def grid(self, bounds=None) -> Optional[GridMap]:
         """The occupancy grid of the scans added so far (``scans_to_grid``); with ``bounds``
         (x_min, y_min, x_max, y_max) in the grid's frame, metres, only its cells that the box
         touches (the same cells, bit for bit; a mapping loop matches a scan against the part of a
-        submap it can land on); None when the box touches none of its cells."""
+        submap it can land on); None when the box touches none of its cells. The whole grid is
+        the same object until a beam is added (a matcher then finds it prepared)."""
         if self._hits.size == 0:
             raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
+        if bounds is None and self._grid is not None:
+            return self._grid
         model, hits, misses, offset = self.model, self._hits, self._misses, self._offset
         if bounds is not None:
             box = np.asarray(bounds, dtype=np.float64) if np.shape(bounds) == (4,) else np.full(4, np.nan)
@@ -254,7 +259,10 @@ class BeamCounts:
         prob[known] = p
         # the corner on the lattice: the same float as (floor(x / resolution) - margin) * resolution
         corner = offset[::-1].astype(np.float64) * self.resolution
-        return _trusted(prob, self.resolution, (float(corner[0]), float(corner[1]), 0.0))   # in (0, 1) or NaN
+        grid = _trusted(prob, self.resolution, (float(corner[0]), float(corner[1]), 0.0))   # in (0, 1) or NaN
+        if bounds is None:
+            self._grid = grid
+        return grid
 
 
 def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel = SensorModel(),

@@ -400,7 +400,9 @@ def test_beam_counts_added_scan_by_scan_are_the_grid_of_all_scans(engine):
         counts = BeamCounts(resolution=0.1, engine=engine)
         for k in order:
             counts.add([scans[k]], poses[k:k + 1])
-        assert same_grid(counts.grid(), whole)
+            grid = counts.grid()
+            assert counts.grid() is grid                   # the same object until a beam is added
+        assert same_grid(grid, whole)
     with pytest.raises(InvalidOptionError, match="no usable beam"):
         BeamCounts().grid()
 
