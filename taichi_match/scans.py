@@ -232,7 +232,10 @@ class BeamCounts:
             return self._grid
         model, hits, misses, offset = self.model, self._hits, self._misses, self._offset
         if bounds is not None:
-            box = np.asarray(bounds, dtype=np.float64) if np.shape(bounds) == (4,) else np.full(4, np.nan)
+            try:
+                box = np.asarray(bounds, dtype=np.float64) if np.shape(bounds) == (4,) else np.full(4, np.nan)
+            except (TypeError, ValueError):
+                box = np.full(4, np.nan)
             x_min, y_min, x_max, y_max = box
             if not np.all(np.isfinite(box)) or x_min > x_max or y_min > y_max:
                 raise InvalidOptionError(f"bounds must be finite (x_min, y_min, x_max, y_max), the least first; "

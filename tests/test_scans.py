@@ -426,7 +426,8 @@ def test_beam_counts_within_bounds_are_the_window_of_the_whole_grid():
         np.testing.assert_array_equal(part.prob, whole.prob[r0:r1, c0:c1])
         np.testing.assert_allclose(part.corner_pose, (x0 + 0.1 * c0, y0 + 0.1 * r0, 0.0), atol=1e-9)
     assert counts.grid((x1 + 1.0, y0, x1 + 2.0, y1)) is None
-    for bad in [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 1.0), (np.nan, 0.0, 1.0, 1.0), "abcd"]:
+    for bad in [(0.0, 0.0, 1.0), (1.0, 0.0, 0.0, 1.0), (np.nan, 0.0, 1.0, 1.0), "abcd", ("a", "b", "c", "d"),
+                (0.0, 0.0, np.inf, 1.0), [[0.0, 0.0], [1.0, 1.0]]]:
         with pytest.raises(InvalidOptionError, match="bounds"):
             counts.grid(bad)
 
