@@ -443,13 +443,13 @@ class Slam:
             graph.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*delta), self._odometry_noise(gtsam, delta)))
             pred = compose(est[k - 1], delta)
             target = submaps[0]                           # the older open submap
+            guess = compose(inverse(est[target.key]), pred)   # the scan's pose in the target's frame
             res = None
             # a scan without one usable reading (or a submap of such scans) is not matched
             if usable[k] and castable[target.scans].any():
                 t0 = time.perf_counter()
                 scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
                                           model=self._scan_model)
-                guess = compose(inverse(est[target.key]), pred)
                 t1 = time.perf_counter()
                 preparing = 0.0                           # preparing the target: the match's time
                 whole = target_cast is None or target_cast[0] is not target
@@ -473,7 +473,7 @@ class Slam:
                 seconds["submap grids"] += t2 - t1 - preparing
                 seconds["scan matching"] += time.perf_counter() - t2 + preparing
             verdict = res is not None and scan_accepted(res)
-            gated = verdict and self._agrees_with_odometry(res, compose(inverse(est[target.key]), pred),
+            gated = verdict and self._agrees_with_odometry(res, guess,
                                                            est[k - 1], est[target.key], delta)
             scans.append({"scan": k, "submap": target.index, "pose": None if res is None else res.pose,
                           "accepted": verdict, "edge": gated,
