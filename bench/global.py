@@ -6,8 +6,8 @@ Three sets of pairs, no initial pose given to either method:
   resampled at any angle, its centre up to 4 m from A's (``--crops`` per map, seeded). Correct:
   within 2 cells and 1 degree.
 - **laser submaps** from every log in ``../shared/logs`` (``submaps.py``'s: 20 scans built at the
-  reference poses, consecutive, disjoint and loop pairs; ``--submaps`` per log, seeded). Correct:
-  within 0.1 m and 1 degree of the reference.
+  reference poses, consecutive, disjoint and loop pairs: all 623 of them, or ``--submaps`` per
+  log drawn with the seed). Correct: within 0.1 m and 1 degree of the reference.
 - the four **cross-run pairs** of ``../shared/maps`` (SOURCES.md): gdc_3 / gdc_3ne within 0.05 m
   of (0.10, 0.10, 0); Willow and Intel against the rotations SOURCES.md estimates from dominant
   wall directions; no ground truth beyond that (the overlays: ``--plots``).
@@ -116,14 +116,15 @@ def orb_ransac(a, b):
     return pose, time.perf_counter() - start
 
 
-def run_pairs(kind, name, pairs, limit, peer, rows):
-    for a, b, truth in pairs:
+def run_pairs(kind, name, pairs, limit, peer, rows, labels=None):
+    for k, (a, b, truth) in enumerate(pairs):
         t0 = time.perf_counter()
         res = tm.match(a, b)
         seconds = time.perf_counter() - t0
         dm, dd = errors(res.pose, truth)
         ok = dm <= limit[0] and dd <= limit[1]
         row = {"kind": kind, "name": name, "ok": ok, "accepted": bool(res.accepted), "seconds": seconds,
+               "label": labels[k] if labels is not None else k, "error": (dm, dd),
                "runner_up": (res.hypotheses[1].score / res.hypotheses[0].score) if len(res.hypotheses) > 1 else 0.0}
         if peer:
             pose, t = orb_ransac(a, b)
@@ -157,7 +158,8 @@ def summary(rows, kind, peer):
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--crops", type=int, default=25, help="crop pairs per map (default: %(default)s)")
-    parser.add_argument("--submaps", type=int, default=25, help="submap pairs per log (default: %(default)s)")
+    parser.add_argument("--submaps", type=int, default=None,
+                        help="submap pairs per log, drawn with the seed (default: every pair; 0: none)")
     parser.add_argument("--no-cross-run", action="store_true")
     parser.add_argument("--no-peer", action="store_true", help="skip ORB + RANSAC")
     parser.add_argument("--seed", type=int, default=0)
@@ -179,13 +181,16 @@ def main():
     if real_maps.MAPS.is_dir() and args.crops > 0:
         for name, grid in real_maps.load_maps().items():
             run_pairs("crops", name, crop_pairs(grid, args.crops, rng), (2 * grid.resolution, 1.0), peer, rows)
-    if submaps.LOGS.is_dir() and args.submaps > 0:
+    if submaps.LOGS.is_dir() and args.submaps != 0:
         for name in sorted(p.name for p in submaps.LOGS.iterdir() if p.is_dir()):
             built = submaps.build_submaps(name, 20, 10)
             pairs = submaps.make_pairs(built, 10, 20)
-            pick = rng.permutation(len(pairs))[:args.submaps]
+            # every pair by default: 25 drawn per log (200 in all) gave 98.8 % and 99.4 % accepted
+            # correct on two seeds, all 623 at the same revision 98.3 %
+            pick = range(len(pairs)) if args.submaps is None else rng.permutation(len(pairs))[:args.submaps]
             chosen = [(built[pairs[m][0]][1], built[pairs[m][1]][1], pairs[m][3]) for m in pick]
-            run_pairs("laser submaps", name, chosen, (0.1, 1.0), peer, rows)
+            labels = [f"{pairs[m][2]} pair {m}" for m in pick]
+            run_pairs("laser submaps", name, chosen, (0.1, 1.0), peer, rows, labels)
     cross = []
     if real_maps.MAPS.is_dir() and not args.no_cross_run:
         from taichi_match import io, plots
@@ -220,6 +225,11 @@ def main():
             f"(2 cells, 1 degree), median <= 0.5 s; laser submaps >= 85 % correct, accepted >= 99 % correct; "
             f"cross-run pairs <= 10 s each, gdc_3 / gdc_3ne within 0.05 m of (0.10, 0.10, 0).", "",
             head, rule] + summary(rows, "crops", peer) + summary(rows, "laser submaps", peer)
+    wrong = [r for r in rows if r["accepted"] and not r["ok"]]
+    if wrong:
+        text += ["", "Accepted and wrong (laser submaps: the `submaps.make_pairs` index): "
+                 + "; ".join(f"{r['kind']} {r['name']} {r['label']}: {r['error'][0]:.3f} m, {r['error'][1]:.2f} deg"
+                             for r in wrong) + "."]
     if cross:
         text += ["", "| cross-run pair | pose (x, y, theta) | accepted | search complete | runner-up / best "
                      "| check | seconds |"

@@ -38,13 +38,16 @@ class MatchResult:
         optimiser stopped at a minimum). ``evidence`` holds what it rests on: walls compared, the
         share of walls meeting the other map's walls, the share landing on its free space, and
         the largest standard deviation outside degenerate directions (``taichi_match._verdict``).
-        After a search, also False when a distinct runner-up scores at least ``AMBIGUITY`` times
-        the best (the maps fit two ways: a corridor, a symmetric room) or when the search hit
-        its budget of nodes (``search_complete`` False: the best found, not proven best).
+        After a search, also False when a distinct runner-up scores at least ``AMBIGUITY`` (0.75)
+        times the best (the maps fit two ways: a corridor, a symmetric room) or when the search hit
+        its budget of nodes before proving the best (``search_complete`` False: the best found,
+        not proven best).
     hypotheses : after a search (no initial pose, or ``search_window``), its distinct lattice
         poses with their scores (``_search.Hypothesis``), best first; the best was refined into
         ``pose``. Empty without a search. ``search_complete``: None without a search, else whether
-        it ran to the end (``_search.SearchOptions.max_nodes``).
+        the best is proven: the search ran to the end, or to its budget of nodes
+        (``_search.SearchOptions.max_nodes``) with nothing left that could score 0.9 of the best
+        (runner-ups are then proven down to 0.9 at least, not to 0.75).
 
     Examples
     --------

@@ -40,7 +40,9 @@ of one pose. Best-first in batches: the ``BATCH`` nodes of highest bound are spl
 children, all evaluated in one launch (leaves with the full score), and nodes whose bound cannot
 beat the threshold are dropped. The threshold is the ``HYPOTHESES``-th best distinct leaf found so
 far, or ``RUNNER_UP_FRACTION`` of the best when higher: the best pose is exact, and the runner-ups
-are exact above that fraction of its score.
+are exact above that fraction of its score. When the budget of nodes runs out first, the search
+still counts as complete if every node left bounds below ``COMPLETE_FRACTION`` of the best: the
+best is then exact and the runner-ups are exact above the highest bound left (``SearchResult.proven``).
 """
 
 import dataclasses
@@ -61,10 +63,17 @@ __all__ = ["SearchOptions", "Hypothesis", "SearchResult", "search", "lattice_cel
 
 CLEAR_CELLS = 2.0          # free cells of B nearer its walls than this (cells) are not scored
 HYPOTHESES = 3             # distinct hypotheses kept (the best and its runner-ups)
-# Runner-ups are exact at and above this fraction of the best's score: where the matcher calls a
-# match ambiguous (``_matcher``). Proving them down to 0.8 took intel's cross-run pair 2.2 M
-# nodes (4.8 s), to 0.9 1.2 M (2.2 s); the best pose is exact either way.
-RUNNER_UP_FRACTION = 0.9
+# Runner-ups are proven down to this fraction of the best's score: where the matcher calls a match
+# ambiguous (``_matcher``). Over every laser-submap pair of bench/global.py (623, 2026-12-03), the
+# accepted matches were 98.3 % correct at 0.9 (9 wrong of 531, four of them aliases 5-23 m away
+# whose true pose scored 0.44-0.86 of the best), 99.2 % at 0.8 (4 of 504), 99.8 % at 0.75 (1 of
+# 488, 0.14 m off); the crops of two seeds 399 of 399 at 0.9. The search takes longer (median
+# 0.10 -> 0.23 s on those pairs), bounded by ``max_nodes`` and ``COMPLETE_FRACTION``.
+RUNNER_UP_FRACTION = 0.75
+# ... and at least down to this one, or the search is not complete (``SearchResult.complete``):
+# where the budget of nodes runs out, the proof may stop between the two (intel's cross-run pair
+# needed 1.2 M nodes down to 0.9, 2.2 M down to 0.8).
+COMPLETE_FRACTION = 0.9
 BATCH = 2048               # nodes split per launch (512: 1.35x the time on laser submaps, 8192: 1.05x)
 MAX_LEVEL = 7              # the coarsest node: 128 x 128 translations
 SMALL_LATTICE = 4096       # lattices of at most this many poses are scored whole (no tree)
@@ -121,6 +130,9 @@ class SearchResult:
     rotation_step: float    # the lattice's angle step, radians
     resolution: float       # the cell side it searched at, metres (its translation step)
     complete: bool = True   # False: stopped at ``max_nodes``; the best is the best found, not proven
+    # runner-ups are exact at and above this fraction of the best's score: RUNNER_UP_FRACTION, or
+    # up to COMPLETE_FRACTION where the budget ran out; 1.0 when not complete (none proven)
+    proven: float = RUNNER_UP_FRACTION
 
 
 def score_values(a: GridMap, blur: float):
@@ -403,9 +415,9 @@ def search(a: GridMap, b: GridMap, guess=None, options: SearchOptions = None, en
     tree = _Tree(levels, lattice.step * wall_radius / a.resolution)
     blur = max(0.1, a.resolution) if opts.blur is None else opts.blur
     scorer = _Scorer(a, walls, free, centre, lattice, tree, blur, engine)
-    leaves, complete = _branch_and_bound(scorer, lattice, tree, opts)
+    leaves, complete, proven = _branch_and_bound(scorer, lattice, tree, opts)
     hypotheses = [Hypothesis(pose, float(score)) for pose, score in leaves]
-    return SearchResult(hypotheses, scorer.scored, lattice.size, lattice.step, a.resolution, complete)
+    return SearchResult(hypotheses, scorer.scored, lattice.size, lattice.step, a.resolution, complete, proven)
 
 
 class _Tree:
@@ -453,7 +465,9 @@ class _Tree:
 
 def _branch_and_bound(scorer, lattice, tree, opts):
     """Best-first branch and bound: ([(pose, score)] of the distinct hypotheses, best first,
-    whether it ran to the end rather than to ``opts.max_nodes``)."""
+    whether the best is proven (the search ran to the end, or to ``opts.max_nodes`` with every
+    node left bounded below ``COMPLETE_FRACTION`` of it), the fraction of the best down to which
+    the runner-ups are proven)."""
     levels = tree.levels
 
     evaluate = scorer
@@ -461,19 +475,26 @@ def _branch_and_bound(scorer, lattice, tree, opts):
     nodes = tree.top(lattice)
     bounds = evaluate(levels, nodes)
     if levels == 0:
-        return _hypotheses(lattice, bounds, nodes, _distinct(lattice, bounds, nodes, opts, -np.inf)[1]), True
+        return _hypotheses(lattice, bounds, nodes, _distinct(lattice, bounds, nodes, opts, -np.inf)[1]), True, \
+            RUNNER_UP_FRACTION
     node_levels = np.full(len(nodes), levels)
     leaf_scores, leaf_nodes = np.empty(0), np.empty((0, 3), dtype=np.int32)
     threshold = -np.inf
-    complete = True
+    complete, proven = True, RUNNER_UP_FRACTION
     while len(bounds):
         keep = bounds > threshold
         bounds, node_levels, nodes = bounds[keep], node_levels[keep], nodes[keep]
         if not len(bounds):
             break
         if scorer.scored >= opts.max_nodes:
+            best_leaf = leaf_scores.max() if len(leaf_scores) else -np.inf
+            left = float(bounds.max())
+            if best_leaf > 0 and left < COMPLETE_FRACTION * best_leaf:
+                # over budget with the best proven: runner-ups exact down to the highest bound left
+                proven = max(left / best_leaf, RUNNER_UP_FRACTION)
+                break
             # over budget: the best node so far followed down to a leaf, its best child each level
-            complete = False
+            complete, proven = False, 1.0
             best = int(np.argmax(bounds))
             level, node = int(node_levels[best]), nodes[best:best + 1]
             while level > 0:
@@ -510,7 +531,7 @@ def _branch_and_bound(scorer, lattice, tree, opts):
             above |= leaf_scores >= leaf_scores.max()
             leaf_scores, leaf_nodes = leaf_scores[above], leaf_nodes[above]
     return _hypotheses(lattice, leaf_scores, leaf_nodes,
-                       _distinct(lattice, leaf_scores, leaf_nodes, opts, threshold)[1]), complete
+                       _distinct(lattice, leaf_scores, leaf_nodes, opts, threshold)[1]), complete, proven
 
 
 def _hypotheses(lattice, scores, nodes, picked):

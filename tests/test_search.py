@@ -12,7 +12,15 @@ from scipy import ndimage
 from taichi_match import GridMap, InvalidOptionError, match
 from taichi_match._grid import trinary
 from taichi_match._se2 import compose, transform_points, wrap_angle
-from taichi_match._search import RUNNER_UP_FRACTION, SearchOptions, _Lattice, _points, lattice_cells, search
+from taichi_match._search import (
+    COMPLETE_FRACTION,
+    RUNNER_UP_FRACTION,
+    SearchOptions,
+    _Lattice,
+    _points,
+    lattice_cells,
+    search,
+)
 from taichi_match.scenes import corridor
 
 
@@ -242,6 +250,34 @@ def test_a_search_past_its_budget_says_so_and_is_not_accepted():
         search(a, b, None, SearchOptions(max_nodes=0))
 
 
+def test_a_budget_that_runs_out_after_the_best_is_proven_keeps_the_search_complete(monkeypatch):
+    """Cut at any budget, the search is complete exactly when it proved the best (nothing left
+    could score ``COMPLETE_FRACTION`` of it): then its best is the full search's and its
+    runner-ups are the full search's down to the fraction it reports as proven. (Small batches,
+    so that budgets fall between the proofs down to 0.9 and to 0.75.)"""
+    import taichi_match._search as searching
+
+    monkeypatch.setattr(searching, "BATCH", 32)
+    a, b = room_pair(np.array([0.4, -0.3, 2.5]), resolution=0.05)
+    full = search(a, b)
+    best = full.hypotheses[0].score
+    assert full.complete and full.proven == RUNNER_UP_FRACTION
+    seen = set()
+    for share in np.linspace(0.05, 0.95, 19):
+        cut = search(a, b, None, SearchOptions(max_nodes=max(int(share * full.nodes), 1)))
+        if not cut.complete:
+            assert cut.proven == 1.0 and cut.hypotheses[0].score <= best
+            seen.add("incomplete")
+            continue
+        assert RUNNER_UP_FRACTION <= cut.proven < COMPLETE_FRACTION
+        assert cut.hypotheses[0].score == best
+        np.testing.assert_array_equal(cut.hypotheses[0].pose, full.hypotheses[0].pose)
+        proven = [h.score for h in full.hypotheses if h.score >= cut.proven * best]
+        assert [h.score for h in cut.hypotheses[:len(proven)]] == proven
+        seen.add("cut after the proof" if cut.nodes < full.nodes else "whole")
+    assert {"incomplete", "cut after the proof"} <= seen
+
+
 def test_parallel_corridors_within_a_window():
     """Table 2's case: B a copy of the corridor beside A's, sharing its wall. Without a guess the
     full overlap (y = 0) explains B better (two walls meet instead of one, nothing conflicts), so
@@ -302,3 +338,42 @@ def test_a_mirrored_room_is_not_accepted():
     a, mirrored = GridMap(prob, 0.05), GridMap(prob.T.copy(), 0.05)
     assert match(a, GridMap(np.rot90(prob).copy(), 0.05)).accepted      # a true rotation is found
     assert not match(a, mirrored).accepted
+
+
+SHARED_LOGS = Path(__file__).resolve().parents[2] / "shared" / "logs"
+
+
+def aces_submap(start):
+    """Scans start .. start + 19 of the shared aces log built at their reference poses, in the
+    frame of scan start + 10, and that scan's reference pose (``bench/submaps.py``'s submaps)."""
+    from taichi_match import inverse
+    from taichi_match.logs import read_carmen, read_tum
+    from taichi_match.scans import scans_to_grid
+
+    folder = SHARED_LOGS / "aces"
+    if not (folder / "aces.log.gz").is_file():
+        pytest.skip(f"no shared aces log in {SHARED_LOGS}")
+    log = read_carmen(folder / "aces.log.gz")
+    _, reference = read_tum(folder / "aces.reference.tum")
+    middle = reference[start + 10]
+    poses = [compose(inverse(middle), reference[k]) for k in range(start, start + 20)]
+    return middle, scans_to_grid(log.scans[start:start + 20], poses, resolution=0.05)
+
+
+@pytest.mark.parametrize("first", [270, 370])
+def test_laser_submaps_that_fit_better_turned_round_are_not_accepted(first):
+    """Two disjoint submaps of aces (bench/global.py's pairs 63 and 88), each of whose best fit
+    without a guess is B turned 180 degrees and 14-23 m away (a hall and corridors alike both
+    ways), where the true pose scores 0.80 and 0.86 of it: a runner-up, so not accepted."""
+    from taichi_match import inverse
+
+    (ma, a), (mb, b) = aces_submap(first), aces_submap(first + 20)
+    truth = compose(inverse(ma), mb)
+    result = match(a, b)
+    assert not result.accepted
+    assert len(result.hypotheses) >= 2 and result.search_complete
+    assert result.hypotheses[1].score >= RUNNER_UP_FRACTION * result.hypotheses[0].score
+    # the truth is one of the hypotheses: within two lattice cells and two angle steps
+    found = [h.pose for h in result.hypotheses
+             if np.hypot(*(h.pose[:2] - truth[:2])) <= 0.4 and abs(wrap_angle(h.pose[2] - truth[2])) <= 0.05]
+    assert found
