@@ -185,6 +185,8 @@ class SlamOptions:
         0.151, seattle 0.052 -> 0.056, more loop closures wrong against the references on five
         logs, and twice the time per scan (loop closing 2-4x): not yet the default. Searching only
         when an accepted closure moved beyond the basin does not save aces (0.26 and 1.69 m).
+        With runner-ups proven down to 0.75 (bench/SLAM_loop_search_2026-12-03.md, one run per
+        log): belgioioso and fhw still worse, loop closing still 2-4x.
     robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
         closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
     loop_consistency : an accepted loop closure enters the graph only when the loop closures
