@@ -115,9 +115,9 @@ class Matcher:
         matcher's options for this call only."""
         start = time.perf_counter()
         opts = self.options.replace(**overrides)
-        hypotheses, complete = (), None
+        hypotheses, complete, proven = (), None, None
         if initial_pose is None or search_window is not None:
-            initial_pose, hypotheses, complete = _searched_start(a, b, initial_pose, search_window, opts)
+            initial_pose, hypotheses, complete, proven = _searched_start(a, b, initial_pose, search_window, opts)
         r0 = as_pose(initial_pose, "initial_pose")
         r0[2] = wrap_angle(r0[2])
         prep_a = self.prepare(a, opts.blur, opts.blur_kind, opts.blur_growth, opts.evidence, opts.levels)
@@ -149,12 +149,14 @@ class Matcher:
             initial_pose=r0, iterations=end.iterations, evaluations=counter.poses, launches=counter.launches,
             converged=status.converged, status=status, message=MESSAGES[status],
             seconds=time.perf_counter() - start, accepted=accepted, evidence=proof, covariance_floor=floor,
-            residual=residual, options=opts, hypotheses=hypotheses, search_complete=complete)
+            residual=residual, options=opts, hypotheses=hypotheses, search_complete=complete,
+            search_proven=proven)
 
 
 def _searched_start(a, b, initial_pose, search_window, opts):
-    """The search's best pose (or the guess when it found none), its hypotheses and whether it
-    ran to the end; around ``initial_pose`` within ``search_window``, or everywhere without it."""
+    """The search's best pose (or the guess when it found none), its hypotheses, whether it
+    proved the best and down to which fraction of it the runner-ups; around ``initial_pose``
+    within ``search_window``, or everywhere without it."""
     for name, grid in (("a", a), ("b", b)):
         if not isinstance(grid, GridMap):
             raise InvalidMapError(f"{name} must be a GridMap; got {type(grid).__name__}")
@@ -173,7 +175,7 @@ def _searched_start(a, b, initial_pose, search_window, opts):
     found = search(a, b, guess, SearchOptions(window=search_window), engine=opts.engine)
     hypotheses = tuple(found.hypotheses)
     # none: the window holds no pose that puts B on A, and the local match from the guess says so
-    return (hypotheses[0].pose if hypotheses else guess), hypotheses, found.complete
+    return (hypotheses[0].pose if hypotheses else guess), hypotheses, found.complete, found.proven
 
 
 _DEFAULT = {}

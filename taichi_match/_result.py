@@ -46,8 +46,10 @@ class MatchResult:
         poses with their scores (``_search.Hypothesis``), best first; the best was refined into
         ``pose``. Empty without a search. ``search_complete``: None without a search, else whether
         the best is proven: the search ran to the end, or to its budget of nodes
-        (``_search.SearchOptions.max_nodes``) with nothing left that could score 0.9 of the best
-        (runner-ups are then proven down to 0.9 at least, not to 0.75).
+        (``_search.SearchOptions.max_nodes``) with nothing left that could score 0.9 of the best.
+        ``search_proven``: None without a search, else the fraction of the best's score down to
+        which the runner-ups are proven (0.75; up to 0.9 where the budget ran out; 1.0 when the
+        search is not complete).
 
     Examples
     --------
@@ -88,6 +90,7 @@ class MatchResult:
     options: MatchOptions = field(repr=False)
     hypotheses: tuple = ()
     search_complete: Optional[bool] = None
+    search_proven: Optional[float] = None
 
     @property
     def calibrated_covariance(self):

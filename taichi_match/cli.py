@@ -262,7 +262,8 @@ def _result_dict(res) -> dict:
         "iterations": res.iterations, "launches": res.launches, "seconds": res.seconds,
         "overlap": res.overlap, "discrepancy": res.discrepancy, "initial_pose": res.initial_pose.tolist(),
         "hypotheses": [{"pose": h.pose.tolist(), "score": h.score} for h in res.hypotheses],
-        "search_complete": res.search_complete, "not_accepted_because": _refusal(res) or None,
+        "search_complete": res.search_complete, "search_proven": res.search_proven,
+        "not_accepted_because": _refusal(res) or None,
     }
 
 

@@ -138,6 +138,7 @@ def test_align_without_a_guess_searches_and_lists_the_hypotheses(tmp_path, capsy
     code = main(["align", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "--json"])
     result = json.loads(capsys.readouterr().out)
     assert code == 0 and result["accepted"] and len(result["hypotheses"]) >= 1
+    assert result["search_complete"] is True and 0.0 < result["search_proven"] < 1.0
     assert np.allclose(result["pose"][:2], truth[:2], atol=0.05) and abs(result["pose"][2] - truth[2]) < 0.01
     # a window around a guess 1 m and 10 degrees off, in plain text
     code = main(["align", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "--initial", "1.0", "0.5", "2.4",

@@ -246,6 +246,7 @@ def test_a_search_past_its_budget_says_so_and_is_not_accepted():
     assert full.complete and not cut.complete and cut.nodes < full.nodes
     assert cut.hypotheses[0].score <= full.hypotheses[0].score
     assert tm.match(a, b).search_complete is True and tm.match(a, b, truth).search_complete is None
+    assert tm.match(a, b).search_proven == RUNNER_UP_FRACTION and tm.match(a, b, truth).search_proven is None
     with pytest.raises(tm.InvalidOptionError):
         search(a, b, None, SearchOptions(max_nodes=0))
 
