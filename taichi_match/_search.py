@@ -67,8 +67,9 @@ HYPOTHESES = 3             # distinct hypotheses kept (the best and its runner-u
 # ambiguous (``_matcher``). Over every laser-submap pair of bench/global.py (623, 2026-12-03), the
 # accepted matches were 98.3 % correct at 0.9 (9 wrong of 531, four of them aliases 5-23 m away
 # whose true pose scored 0.44-0.86 of the best), 99.2 % at 0.8 (4 of 504), 99.8 % at 0.75 (1 of
-# 488, 0.14 m off); the crops of two seeds 399 of 399 at 0.9. The search takes longer (median
-# 0.10 -> 0.23 s on those pairs), bounded by ``max_nodes`` and ``COMPLETE_FRACTION``.
+# 488, 0.14 m off); the crops of two seeds 399 of 399 at 0.9. Proving more runner-ups takes
+# longer (intel's cross-run pair: 1.2 M -> 2.0 M nodes), bounded by ``max_nodes`` and
+# ``COMPLETE_FRACTION``.
 RUNNER_UP_FRACTION = 0.75
 # ... and at least down to this one, or the search is not complete (``SearchResult.complete``):
 # where the budget of nodes runs out, the proof may stop between the two (intel's cross-run pair
@@ -509,12 +510,12 @@ class _Frontier:
         that balances them)."""
         every = self._joined(self.pool + self.cold, threshold)
         size = max(self.POOL, int(math.sqrt(len(every[0]) * BATCH)))
+        self.refilled = size
         if len(every[0]) <= size:
             self.pool, self.cold, self.cold_max = [every], [], -np.inf
             return
         top, rest = self._split(every, size)
         self.pool, self.cold, self.cold_max = [top], [rest], float(rest[0].max())
-        self.refilled = size
 
     def take(self, threshold):
         """The ``BATCH`` nodes of highest bound above ``threshold`` (fewer when no more are), out
