@@ -282,11 +282,12 @@ def _refusal(res) -> str:
         reasons.append(f"the best searched pose scores {hyp[0].score:.0f}: B disagrees with A more than it agrees")
     elif len(hyp) > 1 and hyp[1].score >= AMBIGUITY * hyp[0].score:
         reasons.append(f"ambiguous: a runner-up scores {hyp[1].score / hyp[0].score:.2f} of the best")
+    compared = ev.walls_compared > 0          # with none, the shares are placeholders (0 and 1), not findings
     for bad, what in ((ev.walls_compared < MIN_WALLS, f"{ev.walls_compared} walls compared (< {MIN_WALLS})"),
-                      (ev.wall_agreement < MIN_AGREEMENT, f"{100 * ev.wall_agreement:.0f} % of walls agree "
-                                                          f"(< {100 * MIN_AGREEMENT:.0f})"),
-                      (ev.wall_conflict > MAX_CONFLICT, f"{100 * ev.wall_conflict:.0f} % of walls on free space "
-                                                        f"(> {100 * MAX_CONFLICT:.0f})"),
+                      (compared and ev.wall_agreement < MIN_AGREEMENT, f"{100 * ev.wall_agreement:.0f} % of walls "
+                                                                       f"agree (< {100 * MIN_AGREEMENT:.0f})"),
+                      (compared and ev.wall_conflict > MAX_CONFLICT, f"{100 * ev.wall_conflict:.0f} % of walls on "
+                                                                     f"free space (> {100 * MAX_CONFLICT:.0f})"),
                       (not ev.uncertainty <= MAX_UNCERTAINTY_M, f"uncertainty {100 * ev.uncertainty:.1f} cm "
                                                                 f"(> {100 * MAX_UNCERTAINTY_M:.0f})")):
         if bad:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import rasterize, room_scene
 
-from taichi_match import InvalidOptionError, io
+from taichi_match import GridMap, InvalidOptionError, io
 from taichi_match.cli import main
 from taichi_match.merge import merge_maps
 
@@ -127,6 +127,21 @@ def test_merge_keeps_an_obstacle_either_map_saw_by_default():
     assert merge_maps(a, b, (0.0, 0.0, 0.0), fusion="log-odds").prob[0, 0] == pytest.approx(0.5)
     with pytest.raises(InvalidOptionError):
         merge_maps(a, b, (0.0, 0.0, 0.0), fusion="min")
+
+
+def test_a_refusal_with_no_walls_compared_says_so_and_no_made_up_shares(tmp_path, capsys):
+    # one wall cell each: whatever the pose, no wall lands within reach of the other's, and the
+    # verdict's shares (defined as 0 agreeing and 1 conflicting when nothing is compared) are not
+    # reported as findings
+    p = np.zeros((3, 3))
+    p[1, 1] = 1.0
+    for name in ("a", "b"):
+        io.write_ros_map(GridMap(p, 0.05), tmp_path / f"{name}.yaml")
+    code = main(["align", str(tmp_path / "a.yaml"), str(tmp_path / "b.yaml"), "--json"])
+    result = json.loads(capsys.readouterr().out)
+    assert code == 1 and not result["accepted"] and result["evidence"]["walls_compared"] == 0
+    assert "0 walls compared" in result["not_accepted_because"]
+    assert "agree" not in result["not_accepted_because"] and "free space" not in result["not_accepted_because"]
 
 
 def test_align_without_a_guess_searches_and_lists_the_hypotheses(tmp_path, capsys):
