@@ -378,3 +378,47 @@ def test_laser_submaps_that_fit_better_turned_round_are_not_accepted(first):
     found = [h.pose for h in result.hypotheses
              if np.hypot(*(h.pose[:2] - truth[:2])) <= 0.4 and abs(wrap_angle(h.pose[2] - truth[2])) <= 0.05]
     assert found
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_frontier_gives_the_highest_bounds_of_every_node_waiting(seed, monkeypatch):
+    """``_Frontier`` against a plain list sorted anew each time: after any sequence of pushes,
+    takes above a rising threshold and looks at the highest, a batch holds the ``BATCH`` highest
+    bounds of every node waiting above the threshold (small batches and pool, so that refills
+    and demotions happen), and every node comes out once or is dropped below the threshold."""
+    import taichi_match._search as searching
+
+    monkeypatch.setattr(searching, "BATCH", 8)
+    monkeypatch.setattr(searching._Frontier, "POOL", 16)
+    rng = np.random.default_rng(seed)
+    serial = iter(range(10**6))
+
+    def nodes(count):
+        # ties too; now and then a run of children bounding above everything waiting
+        bounds = np.round(rng.normal(size=count) + (3.0 if rng.random() < 0.3 else 0.0), 1)
+        ids = np.array([next(serial) for _ in range(count)], dtype=np.int32)
+        return bounds, np.full(count, 1), np.stack([ids, ids, ids], axis=1)
+
+    first = nodes(40)
+    frontier = searching._Frontier(*first)
+    waiting = dict(zip(first[2][:, 0].tolist(), first[0].tolist()))      # id -> bound
+    threshold = -np.inf
+    for _ in range(100):
+        if rng.random() < 0.3:
+            threshold = max(threshold, float(rng.normal(-1.0, 0.5)))
+        if rng.random() < 0.2:
+            highest = frontier.highest(threshold)
+            above = [b for b in waiting.values() if b > threshold]
+            assert (highest is None) == (not above)
+            if above:
+                assert highest[0] == max(above) and waiting[int(highest[2][0, 0])] == max(above)
+        bounds, _, taken = frontier.take(threshold)
+        above = sorted((b for b in waiting.values() if b > threshold), reverse=True)
+        expected = above[:8]
+        assert sorted(bounds.tolist(), reverse=True) == expected
+        for node_id, bound in zip(taken[:, 0].tolist(), bounds.tolist()):
+            assert waiting.pop(node_id) == bound                           # out once, with its bound
+        if rng.random() < 0.7:
+            pushed = nodes(int(rng.integers(0, 60)))
+            frontier.push(*pushed)
+            waiting.update(zip(pushed[2][:, 0].tolist(), pushed[0].tolist()))
