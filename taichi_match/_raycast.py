@@ -1,4 +1,5 @@
 """Taichi kernel counting, per grid cell, the laser beams that end in it and the beams that pass through.
+(And one that reads each cell's value from a table of its two counts: ``lookup_pairs_taichi``.)
 
 The Taichi engine of ``scans.count_traversals``; it returns exactly what the NumPy reference does.
 Conventions:
@@ -40,7 +41,7 @@ from ._errors import InvalidOptionError, shown
 from ._launch import launch
 from ._taichi import kernel_lock, kernels
 
-__all__ = ["count_traversals_taichi"]
+__all__ = ["count_traversals_taichi", "lookup_pairs_taichi"]
 
 # Segment coordinates beyond this many cells are refused: cell indices stay well inside int32
 # and the number of steps of a beam stays bounded.
@@ -216,3 +217,26 @@ def count_traversals_taichi(segments, hit, shape, scan=None, offset=(0, 0), out=
         launch(kernels(_build_kernel),
                (segments, hit, own, lo, hi, hits, misses, np.array([row0, col0], dtype=np.int32)), None)
     return hits, misses
+
+
+def _build_lookup(ti):
+    @ti.kernel
+    def lookup(hits: ti.types.ndarray(dtype=ti.i32, ndim=1), misses: ti.types.ndarray(dtype=ti.i32, ndim=1),
+               table: ti.types.ndarray(dtype=ti.f64, ndim=2), out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+        for k in range(hits.shape[0]):
+            out[k] = table[hits[k], misses[k]]
+
+    return lookup
+
+
+def lookup_pairs_taichi(hits, misses, table):
+    """(H, W) float64 ``table[hits, misses]`` per cell, in one pass: the counts must lie within
+    the table (0 <= hits < table rows, 0 <= misses < table columns)."""
+    hits = np.ascontiguousarray(hits, dtype=np.int32)
+    misses = np.ascontiguousarray(misses, dtype=np.int32)
+    table = np.ascontiguousarray(table, dtype=np.float64)
+    out = np.empty(hits.shape)
+    if out.size:
+        with kernel_lock():
+            launch(kernels(_build_lookup), (hits.reshape(-1), misses.reshape(-1), table, out.reshape(-1)), None)
+    return out

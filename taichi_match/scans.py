@@ -247,25 +247,58 @@ class BeamCounts:
                 return None
             (r0, c0), (r1, c1) = (lo - offset).astype(np.int64), (hi - offset).astype(np.int64)
             hits, misses, offset = hits[r0:r1, c0:c1], misses[r0:r1, c0:c1], lo.astype(np.int64)
-        # 1 / (1 + exp(-clip(hit * hits + miss * misses))) on the cells a beam reached only (a fifth
-        # of a laser submap's canvas: 0.56 of the time over the whole canvas, bit for bit the same),
-        # in place (fresh arrays cost page faults)
-        known = (hits | misses) != 0
-        p = model.hit * hits[known]
-        p += model.miss * misses[known]
-        np.clip(p, -model.clamp, model.clamp, out=p)
-        np.negative(p, out=p)
-        np.exp(p, out=p)
-        p += 1.0
-        np.divide(1.0, p, out=p)
-        prob = np.full(hits.shape, np.nan)
-        prob[known] = p
+        prob = _probabilities(hits, misses, model, self.engine)
         # the corner on the lattice: the same float as (floor(x / resolution) - margin) * resolution
         corner = offset[::-1].astype(np.float64) * self.resolution
         grid = _trusted(prob, self.resolution, (float(corner[0]), float(corner[1]), 0.0))   # in (0, 1) or NaN
         if bounds is None:
             self._grid = grid
         return grid
+
+
+# ``_probabilities`` reads a table of every (hits, misses) pair up to the grid's largest counts
+# while it holds at most this many entries: a laser submap's cells hold a hundred distinct pairs
+# (edmonton, 10 scans: 109 in 113k known cells, at most 2 hits and 192 misses a cell), and on
+# its 780 x 504 canvas one Taichi pass reading the table took 0.35-0.45 ms (NumPy's take 0.5 ms
+# with its index kept, 3-4 ms with a fresh one: page faults) against 1.5-2.1 ms for the known
+# cells one by one. The same numbers, bit for bit: the same operations on the same float64 values
+# (a mapping loop's trajectories and maps are unchanged on seattle and edmonton).
+MAX_TABLE = 2**16
+
+
+def _probabilities(hits, misses, model, engine="taichi"):
+    """(H, W) 1 / (1 + exp(-clip(hit * hits + miss * misses, -clamp, clamp))) per cell, NaN where
+    no beam reached (both counts 0): from a table of the count pairs when it is small
+    (``MAX_TABLE``), else on the known cells only (a fifth of a laser submap's canvas), in place
+    (fresh arrays cost page faults)."""
+    most_hits, most_misses = int(hits.max()), int(misses.max())
+    table = (most_hits + 1) * (most_misses + 1) <= MAX_TABLE
+    if table:
+        h = np.arange(most_hits + 1, dtype=np.int32)[:, None]
+        m = np.arange(most_misses + 1, dtype=np.int32)[None, :]
+        p = model.hit * h + model.miss * m
+    else:
+        known = (hits | misses) != 0
+        p = model.hit * hits[known]
+        p += model.miss * misses[known]
+    np.clip(p, -model.clamp, model.clamp, out=p)
+    np.negative(p, out=p)
+    np.exp(p, out=p)
+    p += 1.0
+    np.divide(1.0, p, out=p)
+    if table:
+        p[0, 0] = np.nan
+        if engine == "taichi":
+            from ._raycast import lookup_pairs_taichi
+
+            return lookup_pairs_taichi(hits, misses, p)
+        index = hits.astype(np.intp)              # take() casts other indices first: 10x slower
+        index *= most_misses + 1
+        index += misses
+        return p.reshape(-1).take(index)
+    prob = np.full(hits.shape, np.nan)
+    prob[known] = p
+    return prob
 
 
 def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel = SensorModel(),

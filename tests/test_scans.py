@@ -493,6 +493,29 @@ def test_hits_and_misses_are_counted_per_beam():
         np.testing.assert_array_equal(grid.prob, want)
 
 
+@pytest.mark.parametrize("most", [(3, 200), (400, 3000)])        # from the table, and cell by cell
+def test_probabilities_from_counts_are_the_log_odds_formula_cell_by_cell(most):
+    """Each cell's probability is 1 / (1 + exp(-clip(hit h + miss m))) of its own counts, bit for
+    bit (the oracle: the formula on one cell at a time), NaN where no beam reached."""
+    from taichi_match.scans import MAX_TABLE, _probabilities
+
+    rng = np.random.default_rng(7)
+    hits = rng.integers(0, most[0] + 1, (37, 53)).astype(np.int32)
+    misses = rng.integers(0, most[1] + 1, (37, 53)).astype(np.int32)
+    hits[::5], misses[::5] = 0, 0
+    hits[1, 3], misses[1, 3] = most                               # the largest counts present
+    assert ((most[0] + 1) * (most[1] + 1) <= MAX_TABLE) == (most == (3, 200))
+    model = SensorModel(hit=0.9, miss=-0.4, clamp=6.0)
+    want = np.full(hits.shape, np.nan)
+    for (r, c), h in np.ndenumerate(hits):
+        if h or misses[r, c]:
+            x = min(max(model.hit * float(h) + model.miss * float(misses[r, c]), -model.clamp), model.clamp)
+            want[r, c] = 1.0 / (1.0 + float(np.exp(-x)))
+    for engine in ENGINES:
+        got = _probabilities(hits[:, 2:], misses[:, 2:], model, engine)      # a window: not contiguous
+        np.testing.assert_array_equal(got, want[:, 2:])
+
+
 def test_trinary_thresholds():
     grid = GridMap(np.array([[0.9, 0.66, 0.65, 0.5], [0.2, 0.196, 0.1, np.nan]]), 0.1)
     out = trinary(grid)
