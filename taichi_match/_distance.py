@@ -93,17 +93,17 @@ def _build(ti):
 
     def stamp_kernel(weighted):
         @ti.kernel
-        def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), cols_: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                  weights: ti.types.ndarray(dtype=ti.f64, ndim=1), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                  first: ti.types.ndarray(dtype=ti.i32, ndim=1), half: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                  out: ti.types.ndarray(ndim=2), dt: ti.template()):
+        def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), starts: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                  ends: ti.types.ndarray(dtype=ti.i32, ndim=1), weights: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                  profile: ti.types.ndarray(dtype=ti.f64, ndim=1), first: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                  half: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(ndim=2), dt: ti.template()):
             # a row of the output per work item (filled beforehand with the value beyond reach):
-            # the walls within reach rows of it (walls sorted by row, ``first[r]`` the first on
-            # row r or later) each write the chord of their disc that crosses it,
-            # ``half[d + reach]`` cells either side on row d away, their squared distance (the
-            # least wins) or, weighted, weight * profile[squared distance] (the largest wins); the
-            # row belongs to its work item, so no atomics, and the result does not depend on the
-            # order of the writes
+            # the runs of walls within reach rows of it (runs sorted by row, ``first[r]`` the
+            # first on row r or later) each write the cells of that row within reach of the run,
+            # ``half[d + reach]`` cells beyond either end on row d away, their squared distance to
+            # the run's nearest wall (the least wins) or, weighted, weight * profile[that] (the
+            # largest wins); the row belongs to its work item, so no atomics, and the result does
+            # not depend on the order of the writes
             h, w = out.shape[0], out.shape[1]
             reach = (half.shape[0] - 1) // 2
             for i in range(h):
@@ -111,9 +111,10 @@ def _build(ti):
                     di = rows_[k] - i
                     dy2 = di * di
                     chord = half[di + reach]
-                    c = cols_[k]
-                    for j in range(ti.max(c - chord, 0), ti.min(c + chord + 1, w)):
-                        q = dy2 + (j - c) * (j - c)
+                    a, b = starts[k], ends[k]
+                    for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
+                        dx = ti.max(ti.max(a - j, j - b), 0)
+                        q = dy2 + dx * dx
                         if ti.static(weighted):
                             out[i, j] = ti.max(out[i, j], weights[k] * profile[q])
                         else:
@@ -187,26 +188,37 @@ def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
     beyond = 0 if weights is not None else np.iinfo(dtype).max
     if len(rows) == 0 or 0 in shape:
         return np.full(shape, beyond, dtype=dtype)
-    order = None
-    if np.any(rows[1:] < rows[:-1]):
-        order = np.argsort(rows, kind="stable")
-        rows, cols = rows[order], cols[order]
+    weights = np.zeros(len(rows)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    low = int(cols.min())
+    key = rows.astype(np.int64) * (int(cols.max()) - low + 2) + (cols - low)     # row, then column
+    if np.any(key[1:] <= key[:-1]):                     # nonzero()'s walls come in order already
+        order = np.argsort(key, kind="stable")
+        rows, cols, weights = rows[order], cols[order], weights[order]
+    # runs of walls next to each other on a row (of one weight): each run writes a row's cells
+    # within reach of it once, where each of its walls would write its own overlapping chord; the
+    # same least distance, and for the weighted envelope the same largest value where the profile
+    # does not increase (else each wall is a run of its own)
+    new = np.ones(len(rows), dtype=bool)
+    new[1:] = (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1] + 1)
+    if len(weights) > 1:
+        new[1:] |= weights[1:] != weights[:-1] if np.all(np.diff(profile) <= 0) else True
+    starts = np.flatnonzero(new)
+    ends = np.append(starts[1:], len(rows)) - 1
+    rows, weights = rows[starts], weights[starts]
+    starts, ends = cols[starts], cols[ends]
     first = np.searchsorted(rows, np.arange(shape[0] + 1)).astype(np.int32)
     d = np.arange(-reach, reach + 1)
     half = np.floor(np.sqrt(reach * reach - d * d)).astype(np.int32)     # the disc's chord on row d away
     while np.any(half * half + d * d > reach * reach):                    # (sqrt rounding up at squares)
         half -= (half * half + d * d > reach * reach)
-    weights = np.zeros(1) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
-    if order is not None and len(weights) > 1:
-        weights = weights[order]
     out = np.empty(shape, dtype=dtype) if out is None else out
     # the value beyond reach first, by NumPy: a Taichi loop over the cells runs scalar, about 1 ns
     # a cell here, NumPy's fill a hundredth of that (measured on the mapping loop's front-end
     # targets, seattle, 240 of them: the squared distances' launch 0.75 -> 0.57 ms)
     out.fill(beyond)
     with kernel_lock():
-        launch(kernels(_build)[kernel], (rows, cols, weights, np.ascontiguousarray(profile, dtype=np.float64),
-                                              first, half, out), _taichi_type(dtype))
+        launch(kernels(_build)[kernel], (rows, starts, ends, weights, np.ascontiguousarray(profile, dtype=np.float64),
+                                         first, half, out), _taichi_type(dtype))
     return out
 
 

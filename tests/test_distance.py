@@ -63,9 +63,42 @@ def test_near_weighted_envelope_is_the_largest_weighted_profile_within_reach(rng
         rows, cols = rng.integers(0, shape[0], 12), rng.integers(0, shape[1], 12)
         weights = rng.uniform(0.5, 1.0, 12)
         got = near_weighted_envelope(rows, cols, weights, shape, reach, profile)
-        r, c = np.indices(shape)
-        brute = np.zeros(shape)
-        for a, b, w in zip(rows, cols, weights):
-            q = (r - a) ** 2 + (c - b) ** 2
-            brute = np.maximum(brute, np.where(q <= reach * reach, w * profile[np.minimum(q, reach * reach)], 0.0))
-        np.testing.assert_array_equal(got, brute)
+        np.testing.assert_array_equal(got, brute_envelope(rows, cols, weights, shape, reach, profile))
+
+
+def brute_envelope(rows, cols, weights, shape, reach, profile):
+    r, c = np.indices(shape)
+    brute = np.zeros(shape)
+    for a, b, w in zip(rows, cols, weights):
+        q = (r - a) ** 2 + (c - b) ** 2
+        brute = np.maximum(brute, np.where(q <= reach * reach, w * profile[np.minimum(q, reach * reach)], 0.0))
+    return brute
+
+
+@pytest.mark.parametrize("increasing", [False, True])
+def test_walls_in_runs_along_rows_stamp_as_each_wall_alone(increasing, rng):
+    """Walls next to each other on a row (of one weight, or of several) stamp the same envelope
+    as one by one, also with a profile that rises somewhere (where a run's nearest wall need not
+    give the largest value), and the same squared distances as the exact transform."""
+    from taichi_match._distance import far, near_squared_distance, near_weighted_envelope
+
+    reach, shape = 6, (30, 41)
+    profile = np.exp(-0.5 * np.arange(reach * reach + 1) / 4.0)
+    if increasing:
+        profile[10] = 0.9                          # above its neighbours
+    rows, cols, weights = [], [], []
+    for row, start, length, weight in [(3, 0, 41, 1.0), (9, 5, 7, 0.5), (9, 12, 4, 1.0), (15, 30, 2, 0.75),
+                                       (22, 10, 1, 1.0), (29, 20, 15, 0.5)]:
+        rows += [row] * length
+        cols += list(range(start, start + length))
+        weights += [weight] * length
+    rows, cols, weights = np.array(rows), np.array(cols), np.array(weights)
+    weights[len(weights) // 3] = 0.6               # one wall of a run of another weight
+    order = rng.permutation(len(rows))             # in any order
+    got = near_weighted_envelope(rows[order], cols[order], weights[order], shape, reach, profile)
+    np.testing.assert_array_equal(got, brute_envelope(rows, cols, weights, shape, reach, profile))
+    walls = np.zeros(shape, dtype=bool)
+    walls[rows, cols] = True
+    exact = np.rint(ndimage.distance_transform_edt(~walls) ** 2)
+    squared = near_squared_distance(rows[order], cols[order], shape, reach)
+    np.testing.assert_array_equal(squared, np.where(exact <= reach * reach, exact, far(squared)))
