@@ -15,7 +15,7 @@ FLASER lines), then against ``NAME.reference.tum``:
 - the map's misfit (``map_misfit``): the mean distance from each beam endpoint to the nearest
   endpoint of another scan, capped at 0.2 m, at our poses and at the reference's;
 - scan-to-submap matches accepted; wall time per scan, per stage; the front-end match's median
-  (preparing the new submap and scan included);
+  (preparing the new submap and scan included), and in parts;
 - a picture per log: the trajectory and the reference over the map (``--plots DIR``);
 - with ``--jitter N``: N more runs per log with every odometry pose moved by about a micrometre
   and a microradian (seeded noise, far below any sensor's resolution), and the spread of ATE,
@@ -141,6 +141,7 @@ def run_one(name, log, reference, plots=None, options=None):
                loops_wrong=len(wrong), loops_wrong_ours=sum(ours_fits_better(lp, log, reference) for lp in wrong),
                misfit=misfit, ms_per_scan=1e3 * wall / len(log),
                match_ms=1e3 * float(np.median(result.match_seconds)),
+               match_parts_ms=1e3 * np.median(result.match_parts, axis=0),
                stages={k: 1e3 * v / len(log) for k, v in result.seconds.items()})
     if plots:
         picture(Path(plots) / f"{name}.png", name, result, log, reference)
@@ -199,6 +200,12 @@ def table(rows):
     lines += ["", "Wall time per scan by stage (ms):", "", "| log | " + " | ".join(stages) + " |",
               "|---|" + "---|" * len(stages)]
     lines += [f"| {r['log']} | " + " | ".join(f"{r['stages'][s]:.1f}" for s in stages) + " |" for r in rows]
+    lines += ["", "The front-end match in parts, median ms: preparing its target (the older open submap, cast "
+              "anew for each scan), preparing the scan, and matching the two prepared maps:", "",
+              "| log | target preparation | scan preparation | match | whole (median of the sums) |",
+              "|---|---|---|---|---|"]
+    lines += [f"| {r['log']} | " + " | ".join(f"{v:.1f}" for v in r["match_parts_ms"]) + f" | {r['match_ms']:.1f} |"
+              for r in rows]
     return "\n".join(lines)
 
 
@@ -241,8 +248,9 @@ def main():
             _, reference = read_tum(LOGS / name / f"{name}.reference.tum")
             rows.append(run_one(name, log, reference, args.plots, options))
             jitter_runs(name, log, reference)
-            print(name, {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items() if k != "stages"},
-                  flush=True)
+            shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()
+                     if k not in ("stages", "match_parts_ms")}
+            print(name, shown, flush=True)
     text = ["# The mapping loop on real laser logs", "",
             f"`python bench/slam.py {' '.join(sys.argv[1:])}` at revision {git_revision()}, {datetime.date.today()}, "
             f"{os.cpu_count()}-core machine, {time.perf_counter() - started:.0f} s. "

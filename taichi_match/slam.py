@@ -271,8 +271,10 @@ class SlamResult:
         by the verdict, edge: also within the odometry gate, covariance; pose and covariance None
         when the scan or its submap has no usable reading and was not matched).
     seconds : wall time per stage.
-    match_seconds : each front-end match's time (``MatchResult.seconds``, preparing the new
-        submap and scan included).
+    match_seconds : each front-end match's time, preparing its target (when cast anew) and its
+        scan included.
+    match_parts : (T, 3) the same in parts: preparing the target, preparing the scan, and the
+        match of the two prepared maps (``MatchResult.seconds``), seconds.
     """
 
     poses: np.ndarray
@@ -287,6 +289,7 @@ class SlamResult:
     seconds: dict
     options: SlamOptions
     match_seconds: np.ndarray
+    match_parts: np.ndarray
 
 
 class _Submap:
@@ -434,7 +437,7 @@ class Slam:
         submaps, done = [], []
         self._open_submap(gtsam, graph, values, keys, submaps, done, 0, n, est, travelled)
         accepted = tried = 0
-        loops, scans, match_seconds = [], [], []
+        loops, scans, match_parts = [], [], []
         # submap index -> (BeamCounts, scans counted), since the last optimisation
         self._counts = {}
         target_cast = None                      # (submap, scan, grid): the front end's target as last cast
@@ -467,9 +470,12 @@ class Slam:
                     coarse = prepared if whole else coarse
                     preparing = time.perf_counter() - t
                 t2 = time.perf_counter()
-                res = None if target_cast is None else self._scan_matcher.match(target_cast[2], scan_grid, guess)
-                if res is not None:
-                    match_seconds.append(res.seconds + preparing)
+                res = None
+                if target_cast is not None:
+                    self._scan_matcher.prepare(scan_grid)
+                    t3 = time.perf_counter()
+                    res = self._scan_matcher.match(target_cast[2], scan_grid, guess)
+                    match_parts.append((preparing, t3 - t2, res.seconds))
                     tried += 1
                 seconds["scan grids"] += t1 - t0
                 seconds["submap grids"] += t2 - t1 - preparing
@@ -523,10 +529,11 @@ class Slam:
         world = scans_to_grid(log.scans, est[:n], resolution=opts.resolution, model=self._map_model)
         seconds["final map"] += time.perf_counter() - t1
         frame_keys = [sub.key for sub in sorted(done + submaps, key=lambda sub: sub.index)]
+        parts = np.array(match_parts, dtype=np.float64).reshape(-1, 3)
         return SlamResult(poses=est[:n], timestamps=log.timestamps, map=world, graph=graph, values=values,
                           frames=est[frame_keys],
                           scan_matches=(accepted, tried), loops=loops, scans=scans, seconds=seconds, options=opts,
-                          match_seconds=np.array(match_seconds))
+                          match_seconds=parts.sum(axis=1), match_parts=parts)
 
     def _open_submap(self, gtsam, graph, values, keys, submaps, done, k, n, est, travelled):
         """A new submap from scan ``k`` on. With ``submap_frames`` its frame (graph key ``n`` + its
@@ -761,8 +768,12 @@ def report(result: SlamResult, source: str = "") -> str:
              f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", "",
              "| stage | seconds | ms per scan |", "|---|---|---|"]
     lines += [f"| {stage} | {sec:.2f} | {1e3 * sec / n:.1f} |" for stage, sec in result.seconds.items()]
-    lines += [f"| total | {total:.2f} | {1e3 * total / n:.1f} |", "", "Options:", "", "```", repr(result.options),
-              "```", ""]
+    lines += [f"| total | {total:.2f} | {1e3 * total / n:.1f} |", ""]
+    if len(result.match_parts):
+        target, scan, match = 1e3 * np.median(result.match_parts, axis=0)
+        lines += [f"Front-end match, median: {1e3 * np.median(result.match_seconds):.1f} ms (preparing the target "
+                  f"{target:.1f} ms, the scan {scan:.1f} ms, matching the prepared maps {match:.1f} ms).", ""]
+    lines += ["Options:", "", "```", repr(result.options), "```", ""]
     return "\n".join(lines)
 
 

@@ -150,6 +150,9 @@ def test_outputs_load(short_run, tmp_path, frames):
         expected = result.poses[k] if k < n else result.frames[k - n]
         np.testing.assert_allclose([pose.x(), pose.y(), pose.theta()], expected, rtol=1e-5, atol=1e-5)  # g2o: 6 digits
     assert "scan-to-submap matches accepted" in paths["report"].read_text()
+    assert result.match_parts.shape == (result.scan_matches[1], 3) and np.all(result.match_parts >= 0)
+    np.testing.assert_array_equal(result.match_seconds, result.match_parts.sum(axis=1))
+    assert "Front-end match, median" in paths["report"].read_text()
     evo_file = pytest.importorskip("evo.tools.file_interface")
     trajectory = evo_file.read_tum_trajectory_file(str(paths["trajectory"]))
     assert trajectory.num_poses == len(short_run.log)
