@@ -272,8 +272,8 @@ def _probabilities(hits, misses, model, engine="taichi"):
     (``MAX_TABLE``), else on the known cells only (a fifth of a laser submap's canvas), in place
     (fresh arrays cost page faults)."""
     most_hits, most_misses = int(hits.max()), int(misses.max())
-    table = (most_hits + 1) * (most_misses + 1) <= MAX_TABLE
-    if table:
+    from_table = (most_hits + 1) * (most_misses + 1) <= MAX_TABLE
+    if from_table:
         h = np.arange(most_hits + 1, dtype=np.int32)[:, None]
         m = np.arange(most_misses + 1, dtype=np.int32)[None, :]
         p = model.hit * h + model.miss * m
@@ -286,7 +286,7 @@ def _probabilities(hits, misses, model, engine="taichi"):
     np.exp(p, out=p)
     p += 1.0
     np.divide(1.0, p, out=p)
-    if table:
+    if from_table:
         p[0, 0] = np.nan
         if engine == "taichi":
             from ._raycast import lookup_pairs_taichi
