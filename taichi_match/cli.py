@@ -361,7 +361,7 @@ def _slam(args):
                                                ("submap_frames", args.submap_frames or None),
                                                ("share_coarse", args.share_coarse or None),
                                                ("crop_target", args.crop_target or None),
-                                               ("loop_search", args.loop_search))
+                                               ("loop_search", args.loop_search), ("workers", args.workers))
                              if v is not None})
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
@@ -604,6 +604,9 @@ def main(argv=None):
     slam.add_argument("--crop-target", action="store_true",
                       help="cast the front end's target only around where each scan can land "
                            "(see SlamOptions.crop_target)")
+    slam.add_argument("--workers", type=int, metavar="N",
+                      help="helper processes matching loop-closure candidates beside this one (the same results; "
+                           "default: 1 on two or more cores, 0: none)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
     slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
     slam.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")

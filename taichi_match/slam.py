@@ -60,7 +60,10 @@ the vote 0.23 m, and every other run of bench/SLAM.md unchanged. Every match's e
 (scan-to-submap and loop closure) is under a Cauchy kernel, against the wrong matches that still
 get through (a scan turning a corner can slide several degrees on the junction's few walls). The
 graph is optimised (Levenberg-Marquardt) each time a submap is complete, and once more at the
-end; the estimates are replaced.
+end; the estimates are replaced. A new submap's candidates are all chosen (and cast again) first,
+then matched, this process taking them from the front while helper processes (``workers``,
+``_helper``) take them from the end, then judged in order: the same results as matching them one
+by one here, bit for bit.
 
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
 poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
@@ -76,9 +79,11 @@ import numpy as np
 
 from ._errors import InvalidOptionError, shown
 from ._grid import cells
+from ._helper import Helper
 from ._matcher import Matcher
 from ._options import MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
+from ._taichi import _allowed_cpus
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
 from .logs import LaserLog
 from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
@@ -127,6 +132,7 @@ LOOP_SEARCH_MAX = 2.5
 # the odometry's guess fails the odometry gate anyway.
 CROP_METRES = 1.0
 CROP_RADIANS = 0.05
+MAX_WORKERS = 64
 
 
 def scan_accepted(result) -> bool:
@@ -187,6 +193,9 @@ class SlamOptions:
         when an accepted closure moved beyond the basin does not save aces (0.26 and 1.69 m).
         With runner-ups proven down to 0.75 (bench/SLAM_loop_search_2026-12-03.md, one run per
         log): belgioioso and fhw still worse, loop closing still 2-4x.
+    workers : helper processes that match a share of the loop-closure candidates while this one
+        matches the others (``_helper``): the same results bit for bit, from a second core. None:
+        one when this process may use two or more CPUs, else none; 0: none.
     robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
         closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
     loop_consistency : an accepted loop closure enters the graph only when the loop closures
@@ -211,6 +220,7 @@ class SlamOptions:
     loop_radius: float = 3.0
     loop_growth: float = 0.1
     loop_search: Optional[float] = None
+    workers: Optional[int] = None
     robust_kernel: float = 1.5
     loop_consistency: bool = True
     submap_frames: bool = False
@@ -241,6 +251,10 @@ class SlamOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise InvalidOptionError(f"{name} must be a finite number >= 0; got {shown(value)}")
+        if self.workers is not None and not (isinstance(self.workers, int) and not isinstance(self.workers, bool)
+                                             and 0 <= self.workers <= MAX_WORKERS):
+            raise InvalidOptionError(f"workers must be None or an integer in 0..{MAX_WORKERS}; "
+                                     f"got {shown(self.workers)}")
         if self.loop_search is not None and not (isinstance(self.loop_search, (int, float))
                                                  and math.isfinite(self.loop_search) and self.loop_search >= 0):
             raise InvalidOptionError(f"loop_search must be None or a finite number >= 0; got {shown(self.loop_search)}")
@@ -262,7 +276,8 @@ class SlamResult:
     frames : (M, 3) each submap's frame in the world frame (submap i starts at scan
         i * ``submap_scans // 2``).
     scan_matches : (accepted, tried) front-end matches.
-    loops : one dict per loop-closure candidate tried (submaps, frames: their graph keys,
+    loops : one dict per loop-closure candidate tried (helper: matched by a helper process
+        (``workers``), submaps, frames: their graph keys,
         anchors: their first scans, members: each submap's (scans, poses in its frame) as cast
         for the match, accepted by the verdict, edge: also in the graph, votes: (agree, disagree)
         of its neighbours when they were asked, pose, ...).
@@ -332,6 +347,7 @@ class Slam:
         self._scan_model = replace(SCAN_MODEL, max_ray_length=self.options.max_ray_length)
         self._map_model = SensorModel(max_ray_length=self.options.max_ray_length)
         self._counts = {}
+        self._helpers = []
 
     def _odometry_noise(self, gtsam, delta):
         return gtsam.noiseModel.Gaussian.Covariance(self._odometry_covariance(delta))
@@ -398,6 +414,18 @@ class Slam:
 
     def run(self, log: LaserLog, progress=None) -> SlamResult:
         """Map ``log`` (its scans' poses are read as odometry); ``progress(k, n)`` after each scan."""
+        workers = self.options.workers
+        if workers is None:
+            workers = 1 if len(_allowed_cpus()) >= 2 else 0
+        self._helpers = [helper for helper in (Helper.start(self._matcher.options) for _ in range(workers)) if helper]
+        try:
+            return self._run(log, progress)
+        finally:
+            for helper in self._helpers:
+                helper.close()
+            self._helpers = []
+
+    def _run(self, log, progress):
         gtsam = _gtsam()
         opts = self.options
         n = len(log)
@@ -598,6 +626,7 @@ class Slam:
             return out                                   # final_grid stays None: never matched
         self._cast_final(log, submap, est)
         shared = set(submap.scans)
+        candidates = []                                  # (other, guess, window)
         for other in done:
             if other.final_grid is None or shared.intersection(other.scans):
                 continue
@@ -614,8 +643,12 @@ class Slam:
             window = None
             if opts.loop_search is not None and drift > opts.loop_search:
                 window = (min(drift, LOOP_SEARCH_MAX), min(drift, LOOP_SEARCH_MAX) / LOOP_SEARCH_ARM)
-            res = self._matcher.match(other.final_grid, submap.final_grid, guess, search_window=window)
-            loop = {"window": window, "hypotheses": res.hypotheses, "submaps": (other.index, submap.index),
+            candidates.append((other, guess, window))
+        results, helped = self._match_candidates(submap, candidates)
+        for index, ((other, guess, window), res) in enumerate(zip(candidates, results)):
+            a, b = other.key, submap.key
+            loop = {"helper": index in helped, "window": window, "hypotheses": res.hypotheses,
+                    "submaps": (other.index, submap.index),
                     "frames": (a, b), "anchors": (other.anchor, submap.anchor),
                     "members": (other.final_poses, submap.final_poses), "accepted": res.accepted,
                     "pose": res.pose, "guess": guess, "covariance": res.calibrated_covariance,
@@ -632,6 +665,41 @@ class Slam:
                 graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return out
 
+    def _match_candidates(self, submap, candidates):
+        """Each candidate's match of the new submap in the older one, in order, and the indices of
+        those a helper matched: the helpers (``workers``) take candidates from the end while this
+        process matches from the front, each as soon as it is free; the same results as matching
+        them all here, bit for bit (``_helper``)."""
+        results, helped = [None] * len(candidates), set()
+        pending = list(range(len(candidates)))
+        out = {}                                          # helper -> the candidate it matches
+
+        def collected(wait):
+            for helper in list(out):
+                done = helper.collect(wait)
+                if done is not None or not helper.alive or helper.task is None:
+                    index = out.pop(helper)
+                    if done is not None:
+                        results[index] = done[1]
+                        helped.add(index)
+                    else:                                 # it failed: matched here instead
+                        pending.insert(0, index)
+
+        while pending or out:
+            collected(False)
+            for helper in self._helpers:
+                if pending and helper not in out and helper.idle:
+                    other, guess, window = candidates[pending[-1]]
+                    if helper.give(pending[-1], ((other.index, other.final_grid), (submap.index, submap.final_grid)),
+                                   guess, window):
+                        out[helper] = pending.pop()
+            if pending:
+                index = pending.pop(0)
+                other, guess, window = candidates[index]
+                results[index] = self._matcher.match(other.final_grid, submap.final_grid, guess, search_window=window)
+            elif out:
+                collected(True)
+        return results, helped
 
 def footprint_bounds(grid, pose, metres: float = CROP_METRES, radians: float = CROP_RADIANS):
     """(x_min, y_min, x_max, y_max): the box that ``grid`` covers when placed at ``pose`` (its
@@ -764,7 +832,7 @@ def report(result: SlamResult, source: str = "") -> str:
              f"- scans: {n}; submaps of {result.options.submap_scans} scans at {result.options.resolution} m",
              f"- scan-to-submap matches accepted: {accepted} of {tried}",
              f"- loop closures accepted: {loops_ok} of {len(result.loops)} candidates; in the graph (consistent with "
-             f"their neighbours): {loops_in}",
+             f"their neighbours): {loops_in}; matched by helper processes: {sum(lp['helper'] for lp in result.loops)}",
              f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", "",
              "| stage | seconds | ms per scan |", "|---|---|---|"]
     lines += [f"| {stage} | {sec:.2f} | {1e3 * sec / n:.1f} |" for stage, sec in result.seconds.items()]

@@ -3,6 +3,7 @@ and the trajectory metrics against evo."""
 
 import dataclasses
 import math
+import os
 
 import numpy as np
 import pytest
@@ -120,6 +121,60 @@ def test_simulated_run_with_submap_frames_meets_every_trajectory_target(simulate
     assert errors["rpe_m"] <= 0.03 and errors["rpe_deg"] <= 0.3, errors
 
 
+def test_helper_processes_change_nothing(simulated, mapped):
+    """Loop-closure candidates matched by a helper process (the default on two or more CPUs) give
+    the run the same bits as all of them matched in this process."""
+    alone = Slam(workers=0).run(simulated.log)
+    assert mapped.poses.tobytes() == alone.poses.tobytes()
+    assert not any(loop["helper"] for loop in alone.loops)
+    if len(os.sched_getaffinity(0)) >= 2:
+        assert any(loop["helper"] for loop in mapped.loops)
+
+
+@pytest.fixture(scope="module")
+def one_lap():
+    return simulate_log(1, laps=1.1).log              # a lap and a bit: 16 loop-closure candidates
+
+
+@pytest.mark.parametrize("fault", ["never ready", "dies while matching", "its match raises"])
+def test_a_helper_that_dies_or_fails_is_replaced_by_this_process(one_lap, monkeypatch, fault):
+    """A helper killed before it is ready or while it matches, or one whose match raises, leaves its
+    candidates to this process: the same poses as without helpers, no error."""
+    from taichi_match import _helper
+
+    alone = Slam(workers=0).run(one_lap)
+    assert alone.loops
+    given = []
+
+    class Faulty(_helper.Helper):
+        @classmethod
+        def start(cls, options):
+            helper = super().start(options)
+            if fault == "never ready":
+                helper._process.kill()
+            else:
+                helper.collect(wait=True)                 # ready before the first candidate
+            return helper
+
+        def give(self, tag, maps, guess, window):
+            if not self.idle:
+                return False
+            given.append(tag)
+            if fault == "its match raises":               # a map the helper never got
+                self._post(("match", tag, "no such map", "no such map", guess, window))
+                self.task = tag
+                return True
+            taken = super().give(tag, maps, guess, window)
+            self._process.kill()
+            return taken
+
+    monkeypatch.setattr("taichi_match.slam.Helper", Faulty)
+    result = Slam(workers=1).run(one_lap)
+    assert result.poses.tobytes() == alone.poses.tobytes()
+    assert not any(loop["helper"] for loop in result.loops)
+    assert (not given) if fault == "never ready" else len(given) == 1      # then it is no longer used
+
+
 def test_same_input_same_bits(short_run):
     first, second = Slam().run(short_run.log), Slam().run(short_run.log)
     assert first.poses.tobytes() == second.poses.tobytes()
@@ -186,13 +241,16 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
     assert values.size() == len(short_run.log) + (len(short_run.log) - 1) // half + 1
 
 
-@pytest.mark.parametrize("flag, field", [("--share-coarse", "share_coarse"), ("--crop-target", "crop_target")])
-def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field):
+@pytest.mark.parametrize("flag, field, values", [("--share-coarse", "share_coarse", (True, False)),
+                                                 ("--crop-target", "crop_target", (True, False)),
+                                                 ("--workers", "workers", (0, None))])
+def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is off without them."""
     log_path = tmp_path / "run.log"
     write_carmen(log_path, short_run.log)
-    for args, value in (([flag], True), ([], False)):
+    flags = [flag] if values[0] is True else [flag, str(values[0])]
+    for args, value in ((flags, values[0]), ([], values[1])):
         out = tmp_path / f"out{value}"
         assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
         assert f"{field}={value}" in (out / "report.md").read_text()
@@ -245,7 +303,8 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("loop_radius", -1.0), ("odometry_sd", (0.1, 0.1)),
                                           ("odometry_sd", (0.1, 0.1, 0.1, 0.0, 0.1)), ("max_ray_length", math.nan),
                                           ("target_refresh", 0), ("target_refresh", 2.0), ("target_refresh", True),
-                                          ("loop_consistency", 1), ("share_coarse", 1)])
+                                          ("loop_consistency", 1), ("share_coarse", 1), ("workers", -1),
+                                          ("workers", 1.0), ("workers", True), ("workers", 65)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
