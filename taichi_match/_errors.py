@@ -1,5 +1,7 @@
 """The library's own exceptions: one root, subclasses of the built-ins where natural."""
 
+import reprlib
+
 __all__ = ["shown", "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
            "MapFileError", "MapFormatError", "LogFileError", "LogFormatError"]
 
@@ -43,17 +45,25 @@ class LogFormatError(TaichiMatchError, ValueError):
 
 def shown(value) -> str:
     """``repr(value)`` as an error message shows it: NumPy scalars, also inside tuples and lists,
-    as plain numbers (NumPy 2's repr would print ``np.float64(nan)``).
+    as plain numbers (NumPy 2's repr would print ``np.float64(nan)``), and at most a few items and
+    levels of what a hostile file holds (a YAML of nested aliases expands to billions).
 
     >>> import numpy as np
     >>> shown((np.float64(0.5), np.int64(3))), shown(np.float32(2.0)), shown("a")
     ('(0.5, 3)', '2.0', "'a'")
+    >>> shown([[1] * 100] * 3)
+    '[[1, 1, 1, 1, 1, 1, ...], [1, 1, 1, 1, 1, 1, ...], [1, 1, 1, 1, 1, 1, ...]]'
     """
-    def plain(v):
+    def plain(v, depth):
         if hasattr(v, "item") and type(v).__module__ == "numpy" and getattr(v, "ndim", None) == 0:
             return v.item()
-        if isinstance(v, (tuple, list)):
-            return type(v)(plain(x) for x in v)
+        if isinstance(v, (tuple, list)) and depth < _SHOWN.maxlevel:
+            return type(v)(plain(x, depth + 1) for x in v[:_SHOWN.maxlist + 1])
         return v
 
-    return repr(plain(value))
+    return _SHOWN.repr(plain(value, 0))
+
+
+_SHOWN = reprlib.Repr()
+_SHOWN.maxlevel, _SHOWN.maxlist, _SHOWN.maxtuple, _SHOWN.maxdict = 2, 6, 6, 6
+_SHOWN.maxstring, _SHOWN.maxother, _SHOWN.maxlong = 120, 120, 60

@@ -59,6 +59,10 @@ class Helper:
         self.collect()
         return self.alive and self.ready and self.task is None
 
+    def holds(self, grid) -> bool:
+        """Whether it was sent this very map (and keeps it prepared)."""
+        return any(sent is grid for sent in self._sent.values())
+
     def give(self, tag, maps, guess, window) -> bool:
         """Send a match of ``maps`` ((key, GridMap) for A and B) from ``guess`` within ``window``;
         False when it cannot take it."""

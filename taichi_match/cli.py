@@ -167,6 +167,22 @@ def _read_pairs(path, degrees):
     return pairs
 
 
+def _with_images(paths):
+    """The map files ``paths`` and the images that the readable ROS map YAMLs among them name: what
+    an output must never overwrite (an unreadable map is reported where it is read)."""
+    from taichi_match import TaichiMatchError
+    from taichi_match.io import read_map_yaml
+
+    out = list(paths)
+    for path in paths:
+        if str(path).lower().endswith((".yaml", ".yml")):
+            try:
+                out.append(read_map_yaml(path)["image"])
+            except (TaichiMatchError, OSError, ValueError):
+                pass
+    return out
+
+
 def _align_many(args):
     import json
     import multiprocessing
@@ -182,7 +198,7 @@ def _align_many(args):
     out = sys.stdout if args.output in (None, "-") else None
     if out is None:
         if os.path.exists(args.output):
-            inputs = [args.pairs] + [path for pair in pairs for path in pair[1:3]]
+            inputs = [args.pairs] + _with_images({path for pair in pairs for path in pair[1:3]})
             if any(os.path.exists(p) and os.path.samefile(p, args.output) for p in inputs):
                 raise tm.MapFileError(f"refusing to write {args.output!r}: it is an input")
             if not args.force:
@@ -297,12 +313,11 @@ def _refusal(res) -> str:
 
 def _merge(args):
     from taichi_match import MapFileError
-    from taichi_match.io import read_map_yaml, ros_map_paths, write_ros_map
+    from taichi_match.io import ros_map_paths, write_ros_map
     from taichi_match.merge import merge_maps
 
     output, image = ros_map_paths(args.output, args.mode)
-    inputs = [args.map_a, args.map_b]
-    inputs += [read_map_yaml(path)["image"] for path in inputs if path.lower().endswith((".yaml", ".yml"))]
+    inputs = _with_images([args.map_a, args.map_b])
     for target in (output, image):
         if os.path.exists(target):
             clash = [path for path in inputs if os.path.exists(path) and os.path.samefile(path, target)]
@@ -348,7 +363,7 @@ def _slam(args):
         if left_out:
             print(f"{left_out} scans outside the odometry's time span left out")
     else:
-        log = read_carmen(args.log)
+        log = read_carmen(args.log, max_range=args.max_range)
     reference = None
     if args.reference:
         stamps, reference = read_tum(args.reference)
@@ -483,14 +498,12 @@ def _check_picture(args):
     import importlib.util
 
     from taichi_match import InvalidOptionError
-    from taichi_match.io import read_map_yaml
     from taichi_match.plots import check_picture_path
 
     if importlib.util.find_spec("matplotlib") is None:
         raise InvalidOptionError("--plot needs matplotlib: pip install 'taichi-match[plots]'")
     check_picture_path(args.plot)
-    inputs = [args.map_a, args.map_b]
-    inputs += [read_map_yaml(path)["image"] for path in inputs if path.lower().endswith((".yaml", ".yml"))]
+    inputs = _with_images([args.map_a, args.map_b])
     if os.path.exists(args.plot) and any(os.path.exists(p) and os.path.samefile(p, args.plot) for p in inputs):
         raise InvalidOptionError(f"refusing to write the picture over {args.plot!r}: it is an input")
 
@@ -606,9 +619,12 @@ def main(argv=None):
                            "(see SlamOptions.crop_target)")
     slam.add_argument("--workers", type=int, metavar="N",
                       help="helper processes matching loop-closure candidates beside this one (the same results; "
-                           "default: 1 on two or more cores, 0: none)")
+                           "default 0, see SlamOptions.workers)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
     slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
+    slam.add_argument("--max-range", type=float, metavar="M",
+                      help="a CARMEN log's sensor maximum: a reading at or above it is no return (default: the "
+                           "largest reading that is the largest of two scans or more)")
     slam.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     slam.set_defaults(func=_slam)
     args = parser.parse_args(argv)

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from ._errors import InvalidOptionError, MapFileError, MapFormatError
+from ._errors import InvalidOptionError, MapFileError, MapFormatError, shown
 from ._grid import GridMap
 
 __all__ = [
@@ -70,6 +70,10 @@ PathLike = str | os.PathLike          # a file's path, as the functions below ta
 
 # ---------------------------------------------------------------------------------------------
 # ROS map_server YAML
+
+# A map's cell side (metres) must lie within these: beyond them the grid's coordinates overflow or
+# a map of a few pixels spans more cells than a machine holds.
+MIN_RESOLUTION, MAX_RESOLUTION = 1e-6, 1e4
 
 
 def read_ros_map(yaml_path: PathLike, *, occupied_thresh: float | None = None,
@@ -153,7 +157,7 @@ def read_map_yaml(yaml_path: PathLike) -> dict[str, Any]:
             raise MapFormatError(f"{yaml_path}: the field {key!r} is missing (map_server needs image, "
                                  f"resolution and origin)")
     if not isinstance(meta["image"], str) or not meta["image"]:
-        raise MapFormatError(f"{yaml_path}: 'image' must be a file name; got {meta['image']!r}")
+        raise MapFormatError(f"{yaml_path}: 'image' must be a file name; got {shown(meta['image'])}")
     meta["image"] = os.path.join(os.path.dirname(os.path.abspath(yaml_path)), meta["image"])
     meta.setdefault("negate", 0)
     meta.setdefault("occupied_thresh", 0.65)
@@ -193,12 +197,12 @@ def _check_meta(meta, path):
     def number(key, low=None, high=None, strict_low=False):
         value = _as_number(meta[key])
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-            raise MapFormatError(f"{path}: {key!r} must be a number; got {value!r}")
+            raise MapFormatError(f"{path}: {key!r} must be a number; got {shown(value)}")
         if low is not None and (value < low or (strict_low and value == low)) or high is not None and value > high:
-            raise MapFormatError(f"{path}: {key!r} = {value} is out of range")
+            raise MapFormatError(f"{path}: {key!r} = {value} is out of range ({low} to {high})")
         return float(value)
 
-    meta["resolution"] = number("resolution", 0.0, strict_low=True)
+    meta["resolution"] = number("resolution", MIN_RESOLUTION, MAX_RESOLUTION)
     meta["occupied_thresh"] = number("occupied_thresh", 0.0, 1.0)
     meta["free_thresh"] = number("free_thresh", 0.0, 1.0)
     if meta["free_thresh"] > meta["occupied_thresh"]:
@@ -208,14 +212,14 @@ def _check_meta(meta, path):
     origin = [_as_number(v) for v in origin] if isinstance(origin, list) else origin
     if not isinstance(origin, list) or len(origin) not in (2, 3) or \
             not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in origin):
-        raise MapFormatError(f"{path}: 'origin' must be [x, y, yaw] numbers; got {origin!r}")
+        raise MapFormatError(f"{path}: 'origin' must be [x, y, yaw] numbers; got {shown(origin)}")
     meta["origin"] = [float(v) for v in origin] + ([0.0] if len(origin) == 2 else [])
     negate = meta["negate"]
     if negate not in (0, 1, True, False):
-        raise MapFormatError(f"{path}: 'negate' must be 0 or 1; got {negate!r}")
+        raise MapFormatError(f"{path}: 'negate' must be 0 or 1; got {shown(negate)}")
     meta["negate"] = bool(negate)
     if meta["mode"] not in MODES:
-        raise MapFormatError(f"{path}: 'mode' must be one of {MODES}; got {meta['mode']!r}")
+        raise MapFormatError(f"{path}: 'mode' must be one of {MODES}; got {shown(meta['mode'])}")
 
 
 def _pixels_to_occupancy(image, meta):

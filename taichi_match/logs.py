@@ -25,12 +25,13 @@ line raises ``LogFormatError`` naming the file and line; an unreadable file ``Lo
 
 import gzip
 import math
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ._errors import LogFileError, LogFormatError
+from ._errors import InvalidOptionError, LogFileError, LogFormatError, shown
 
 __all__ = ["Scan", "LaserLog", "read_carmen", "write_carmen", "read_tum", "write_tum"]
 
@@ -101,7 +102,7 @@ def _lines(path):
                 if len(line) > _MAX_LINE:
                     raise LogFormatError(f"{path}:{number}: line longer than {_MAX_LINE} characters")
                 yield number, line.strip()
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+    except (OSError, EOFError, gzip.BadGzipFile, zlib.error) as exc:            # (a corrupt gzip body: zlib's)
         if isinstance(exc, LogFileError):
             raise
         raise LogFileError(f"{path}: cannot read ({exc})") from exc
@@ -172,6 +173,18 @@ def _robotlaser(words, where):
     return timestamp, ranges, start + np.arange(n) * step, np.array([x, y, theta]), max_range
 
 
+def _saturation(raw):
+    """The sensor's maximum range as FLASER scans show it: the largest value that is the largest
+    reading of two scans or more (one bad reading of 65.5 m among readings saturated at 4 m made
+    every 4 m reading a wall), else the largest reading; 0 without a finite reading."""
+    tops = [float(ranges[np.isfinite(ranges)].max()) for _, ranges, *_ in raw if np.isfinite(ranges).any()]
+    if not tops:
+        return 0.0
+    values, counts = np.unique(tops, return_counts=True)
+    repeated = values[counts >= 2]
+    return float(repeated[-1]) if len(repeated) else float(values[-1])
+
+
 def read_carmen(path, *, max_range=None) -> LaserLog:
     """Read a CARMEN log (``FLASER``, ``ROBOTLASER1`` and ``ODOM`` lines; gzipped or not).
 
@@ -181,13 +194,17 @@ def read_carmen(path, *, max_range=None) -> LaserLog:
         The log file.
     max_range : float, optional
         The sensor's maximum range, metres: a reading at or above it means no return. By default
-        ROBOTLASER1 lines give their own and FLASER lines take the largest reading in the log (a
-        saturated sensor reports exactly its maximum).
+        ROBOTLASER1 lines give their own and FLASER lines take the largest reading that is the
+        largest of at least two scans (a saturated sensor reports exactly its maximum, again and
+        again; a lone larger reading is a glitch), or the largest reading when none repeats.
 
     Returns
     -------
     LaserLog
     """
+    if max_range is not None and not (isinstance(max_range, (int, float)) and not isinstance(max_range, bool)
+                                      and math.isfinite(max_range) and max_range > 0):
+        raise InvalidOptionError(f"max_range must be a finite number of metres > 0 or None; got {shown(max_range)}")
     raw, odometry = [], []
     for number, line in _lines(path):
         if not line or line.startswith("#"):
@@ -209,8 +226,7 @@ def read_carmen(path, *, max_range=None) -> LaserLog:
             odometry.append((timestamp, x, y, theta))
     if not raw:
         raise LogFormatError(f"{path}: no FLASER or ROBOTLASER1 line")
-    finite = [r[1][np.isfinite(r[1])] for r in raw]
-    inferred = max((float(f.max()) for f in finite if f.size), default=0.0)
+    inferred = _saturation(raw)
     scans = []
     for timestamp, ranges, angles, pose, own_max in raw:
         limit = max_range if max_range is not None else (own_max if own_max is not None else inferred)

@@ -24,6 +24,10 @@ __all__ = ["merge_maps", "sample", "FUSIONS"]
 FUSIONS = ("max", "log-odds")
 
 _CLIP = 1e-3        # probabilities are clipped to [1e-3, 1 - 1e-3] before log-odds
+# ``fusion="max"`` samples each map at least once per cell of its own within each merged cell: at
+# most this many samples in all (a few seconds; a map a thousand times finer than the other took
+# many minutes)
+MAX_SAMPLES = 2**28
 
 
 def sample(grid: GridMap, points: npt.ArrayLike) -> np.ndarray:
@@ -142,6 +146,13 @@ def merge_maps(a: GridMap, b: GridMap, pose_a2b: npt.ArrayLike, *, resolution: f
     if fusion == "max":
         # each map's cells within a merged cell, at least one sample per cell of the finer map:
         # a wall thinner than a merged cell stays a wall
+        for name, grid in (("A", a), ("B", b)):
+            k = math.ceil(res / grid.resolution - 1e-9)
+            if not k * k * out.prob.size <= MAX_SAMPLES:
+                raise InvalidOptionError(f"map {name}'s cells ({grid.resolution:g} m) are {k:.3g} times finer than "
+                                         f"the merged map's ({res:g} m): {k:.3g}^2 samples in each of "
+                                         f"{out.prob.size} merged cells is more than {MAX_SAMPLES}; merge at a "
+                                         f"finer resolution or coarsen map {name} first")
         fused = _max_over_cell(a, centres, res, (0.0, 0.0, 0.0))
         np.fmax(fused, _max_over_cell(b, centres, res, pose), out=fused)   # fmax: NaN only where both are
         return out.with_prob(fused)

@@ -71,6 +71,7 @@ Graph keys: scan k is key k; submap i's frame is key S + i (S scans).
 """
 
 import math
+import os
 import time
 from dataclasses import dataclass, field, replace
 from typing import Optional
@@ -83,7 +84,6 @@ from ._helper import Helper
 from ._matcher import Matcher
 from ._options import MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
-from ._taichi import _allowed_cpus
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT
 from .logs import LaserLog
 from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
@@ -194,8 +194,11 @@ class SlamOptions:
         With runner-ups proven down to 0.75 (bench/SLAM_loop_search_2026-12-03.md, one run per
         log): belgioioso and fhw still worse, loop closing still 2-4x.
     workers : helper processes that match a share of the loop-closure candidates while this one
-        matches the others (``_helper``): the same results bit for bit, from a second core. None:
-        one when this process may use two or more CPUs, else none; 0: none.
+        matches the others (``_helper``): the same results bit for bit. Not the default: on this
+        2-core machine (2026-12-03, two runs each way per log, alternating) one helper made fhw's
+        loop-closing stage 0.75-0.85 of its time (12.3-13.3 against 14.5-17.3 ms per scan) but
+        seattle's, csail's and belgioioso's 1.0-1.4 times as long (seattle 11.6 against 7.7-9.0
+        ms): this process's Taichi kernels run on both cores, and a busy helper slows them.
     robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
         closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
     loop_consistency : an accepted loop closure enters the graph only when the loop closures
@@ -220,7 +223,7 @@ class SlamOptions:
     loop_radius: float = 3.0
     loop_growth: float = 0.1
     loop_search: Optional[float] = None
-    workers: Optional[int] = None
+    workers: int = 0
     robust_kernel: float = 1.5
     loop_consistency: bool = True
     submap_frames: bool = False
@@ -251,10 +254,9 @@ class SlamOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise InvalidOptionError(f"{name} must be a finite number >= 0; got {shown(value)}")
-        if self.workers is not None and not (isinstance(self.workers, int) and not isinstance(self.workers, bool)
-                                             and 0 <= self.workers <= MAX_WORKERS):
-            raise InvalidOptionError(f"workers must be None or an integer in 0..{MAX_WORKERS}; "
-                                     f"got {shown(self.workers)}")
+        if not (isinstance(self.workers, int) and not isinstance(self.workers, bool)
+                and 0 <= self.workers <= MAX_WORKERS):
+            raise InvalidOptionError(f"workers must be an integer in 0..{MAX_WORKERS}; got {shown(self.workers)}")
         if self.loop_search is not None and not (isinstance(self.loop_search, (int, float))
                                                  and math.isfinite(self.loop_search) and self.loop_search >= 0):
             raise InvalidOptionError(f"loop_search must be None or a finite number >= 0; got {shown(self.loop_search)}")
@@ -414,10 +416,8 @@ class Slam:
 
     def run(self, log: LaserLog, progress=None) -> SlamResult:
         """Map ``log`` (its scans' poses are read as odometry); ``progress(k, n)`` after each scan."""
-        workers = self.options.workers
-        if workers is None:
-            workers = 1 if len(_allowed_cpus()) >= 2 else 0
-        self._helpers = [helper for helper in (Helper.start(self._matcher.options) for _ in range(workers)) if helper]
+        self._helpers = [helper for helper in (Helper.start(self._matcher.options)
+                                               for _ in range(self.options.workers)) if helper]
         try:
             return self._run(log, progress)
         finally:
@@ -667,9 +667,9 @@ class Slam:
 
     def _match_candidates(self, submap, candidates):
         """Each candidate's match of the new submap in the older one, in order, and the indices of
-        those a helper matched: the helpers (``workers``) take candidates from the end while this
-        process matches from the front, each as soon as it is free; the same results as matching
-        them all here, bit for bit (``_helper``)."""
+        those a helper matched: the helpers (``workers``) take candidates from the end (first those
+        whose older submap they hold as cast) while this process matches from the front, each as
+        soon as it is free; the same results as matching them all here, bit for bit (``_helper``)."""
         results, helped = [None] * len(candidates), set()
         pending = list(range(len(candidates)))
         out = {}                                          # helper -> the candidate it matches
@@ -688,11 +688,16 @@ class Slam:
         while pending or out:
             collected(False)
             for helper in self._helpers:
-                if pending and helper not in out and helper.idle:
-                    other, guess, window = candidates[pending[-1]]
-                    if helper.give(pending[-1], ((other.index, other.final_grid), (submap.index, submap.final_grid)),
+                # a helper only while this process has another to match (else it would wait for the
+                # helper's preparing of maps it has not seen), the last one whose older submap it holds
+                if len(pending) >= 2 and helper not in out and helper.idle:
+                    held = [i for i in pending[1:] if helper.holds(candidates[i][0].final_grid)]
+                    index = held[-1] if held else pending[-1]
+                    other, guess, window = candidates[index]
+                    if helper.give(index, ((other.index, other.final_grid), (submap.index, submap.final_grid)),
                                    guess, window):
-                        out[helper] = pending.pop()
+                        pending.remove(index)
+                        out[helper] = index
             if pending:
                 index = pending.pop(0)
                 other, guess, window = candidates[index]
@@ -763,6 +768,11 @@ def output_paths(folder, *, force: bool = False, keep=()) -> dict:
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise FileExistsError(f"{folder} exists and is not a folder")
+    existing = folder.absolute()
+    while not existing.exists() and existing != existing.parent:      # the folder, or where it would go
+        existing = existing.parent
+    if not os.access(existing, os.W_OK | os.X_OK):                      # (read-only file systems too)
+        raise PermissionError(f"cannot write into {existing}: the outputs would be lost after the run")
     paths = {name: folder / file for name, file in zip(("trajectory", "map", "image", "graph", "report"), OUTPUTS)}
     kept = [Path(k).resolve() for k in keep if k]
     for path in paths.values():

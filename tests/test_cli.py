@@ -292,6 +292,28 @@ def test_align_many_writes_a_line_per_pair_in_order(pair, tmp_path, capsys):
     assert lines[0]["pose"] == expected["pose"] and lines[0]["covariance"] == expected["covariance"]
 
 
+def test_align_many_never_writes_over_an_input_maps_image(pair, tmp_path, capsys):
+    """--force replaces an earlier output, never a file a pair reads: the CSV, a YAML, or the image
+    a YAML names."""
+    pairs = write_pairs(tmp_path / "pairs.csv", [("a.yaml", "b.yaml", 0, 0, 0)])
+    image = tmp_path / "b.pgm"
+    before = image.read_bytes()
+    assert main(["align-many", str(pairs), "-o", str(image), "--force"]) == 2
+    assert "it is an input" in capsys.readouterr().err and image.read_bytes() == before
+
+
+def test_merge_refuses_a_map_far_finer_than_the_merged_one(pair, tmp_path, capsys):
+    """A map 500 times finer than the merged map would take 500 x 500 samples per merged cell
+    (1e-300 m: forever): refused at once."""
+    a, b, _ = pair
+    text = b.read_text()
+    fine = tmp_path / "fine.yaml"
+    fine.write_text("\n".join("resolution: 0.0001" if line.startswith("resolution") else line
+                              for line in text.splitlines()) + "\n")
+    assert main(["merge", str(a), str(fine), "--pose", "0", "0", "0", "-o", str(tmp_path / "m.yaml")]) == 2
+    assert "finer" in capsys.readouterr().err and not (tmp_path / "m.yaml").exists()
+
+
 def test_align_many_on_two_workers_gives_the_same_lines(pair, tmp_path, capsys):
     pairs = write_pairs(tmp_path / "pairs.csv", [("a.yaml", "b.yaml", 0, 0, 0), ("b.yaml", "a.yaml", 0, 0, 0),
                                                  ("a.yaml", "b.yaml", 0.1, 0.1, 0.0)])

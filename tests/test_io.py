@@ -107,6 +107,11 @@ def test_png_variants_pillow_writes(tmp_path):
     assert io.read_image(tmp_path / "b.png").tolist() == [[255, 0]]
 
 
+# nested aliases: nine levels of nine, 9**10 items once expanded (a YAML bomb)
+BOMB = "l0: &l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
+    f"l{k}: &l{k} [" + ", ".join([f"*l{k - 1}"] * 9) + "]\n" for k in range(1, 10))
+
+
 @pytest.mark.parametrize("text, match", [
     ("resolution: 0.05\norigin: [0, 0, 0]\n", "'image' is missing"),
     ("image: m.pgm\norigin: [0, 0, 0]\n", "'resolution' is missing"),
@@ -118,12 +123,16 @@ def test_png_variants_pillow_writes(tmp_path):
     ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0]\nfree_thresh: 0.9\n", "free_thresh"),
     ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0]\nnegate: 2\n", "'negate'"),
     ("just a line\n", "expected 'key: value'"),
+    ("image: m.pgm\nresolution: 1e300\norigin: [0, 0, 0]\n", "out of range"),
+    ("image: m.pgm\nresolution: 1e-300\norigin: [0, 0, 0]\n", "out of range"),
+    (BOMB + "image: m.pgm\nresolution: 0.1\norigin: *l9\n", "'origin' must be"),
 ])
 def test_malformed_yaml_gives_clear_errors(tmp_path, text, match):
     io.write_image(str(tmp_path / "m.pgm"), np.zeros((2, 2), np.uint8))
     (tmp_path / "m.yaml").write_text(text)
-    with pytest.raises(MapFormatError, match=match):
+    with pytest.raises(MapFormatError, match=match) as error:
         io.read_ros_map(tmp_path / "m.yaml")
+    assert len(str(error.value)) < 2000                  # a hostile value is shown in part
 
 
 def test_missing_and_corrupt_files(tmp_path):

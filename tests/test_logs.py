@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from taichi_match._errors import LogFileError, LogFormatError
+from taichi_match._errors import InvalidOptionError, LogFileError, LogFormatError
 from taichi_match.logs import LaserLog, read_carmen, read_tum, write_tum
 
 SHARED_LOGS = Path(__file__).resolve().parents[2] / "shared" / "logs"
@@ -75,16 +75,37 @@ def test_flaser_beam_counts_and_max_range(tmp_path):
     # apart, 361 beams 0.5), an even count stops one step short of +90 (180 beams 1 degree apart)
     counts = [181, 361, 180, 360, 3, 4]
     lines = [flaser([2.0] * n, (0.0, 0.0, 0.0), float(i)) for i, n in enumerate(counts)]
-    lines.append(flaser([3.0, 4.0, float("inf")], (1.0, 2.0, 3.0), 9.0))
+    lines += [flaser([3.0, 4.0, float("inf")], (1.0, 2.0, 3.0), t) for t in (9.0, 10.0)]
     path = write(tmp_path / "a.log", lines)
     log = read_carmen(path)
     want = [np.arange(-90.0, 90.5, 1.0), np.arange(-90.0, 90.25, 0.5), np.arange(-90.0, 89.5, 1.0),
             np.arange(-90.0, 89.75, 0.5), [-90.0, 0.0, 90.0], [-90.0, -45.0, 0.0, 45.0]]
     for scan, degrees in zip(log.scans, want):
         np.testing.assert_allclose(np.degrees(scan.angles), degrees, rtol=0, atol=1e-12)
-    assert [s.max_range for s in log.scans] == [4.0] * 7          # infinite readings left out
+    assert [s.max_range for s in log.scans] == [4.0] * 8          # infinite readings left out
     assert log.odometry.shape == (0, 4)
-    assert [s.max_range for s in read_carmen(path, max_range=30.0).scans] == [30.0] * 7
+    assert [s.max_range for s in read_carmen(path, max_range=30.0).scans] == [30.0] * 8
+    for bad in (0.0, -1.0, math.nan, math.inf, "8"):
+        with pytest.raises(InvalidOptionError, match="max_range"):
+            read_carmen(path, max_range=bad)
+
+
+def test_a_lone_larger_reading_is_not_the_sensors_maximum(tmp_path):
+    """Readings saturated at 4 m in most scans and one glitch of 65.5 m: the maximum is 4 m (a
+    glitch taken for it made every 4 m reading a wall); with no value repeated, the largest."""
+    lines = [flaser([1.0, 4.0, 2.5], (0.0, 0.0, 0.0), float(t)) for t in range(5)]
+    lines.append(flaser([1.0, 65.535, 2.5], (0.0, 0.0, 0.0), 5.0))
+    assert {s.max_range for s in read_carmen(write(tmp_path / "a.log", lines)).scans} == {4.0}
+    lines = [flaser([1.0, 3.0 + t, 2.5], (0.0, 0.0, 0.0), float(t)) for t in range(3)]
+    assert {s.max_range for s in read_carmen(write(tmp_path / "b.log", lines)).scans} == {5.0}
+
+
+def test_a_corrupt_gzip_body_is_a_log_file_error_naming_the_file(tmp_path):
+    data = bytearray(gzip.compress(("\n".join(LOG_LINES) + "\n").encode() * 50))
+    data[40:60] = bytes(20)
+    (tmp_path / "bad.log.gz").write_bytes(bytes(data))
+    with pytest.raises(LogFileError, match="bad.log.gz"):
+        read_carmen(tmp_path / "bad.log.gz")
 
 
 def test_robotlaser_lines(tmp_path):

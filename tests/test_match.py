@@ -256,3 +256,21 @@ def test_maps_without_structure_are_reported_as_giving_no_information():
     assert res.status == Status.NO_INFORMATION and not res.converged
     assert len(res.degenerate) == 3 and np.all(np.isfinite(res.covariance))
     assert np.allclose(res.pose, (0.1, -0.05, 0.02))
+
+
+@pytest.mark.parametrize("far", [1.5e5, 1e7])
+def test_maps_far_from_their_frames_origin_are_refused(far):
+    """Cells 1e7 m from their frame's origin gave an accepted pose 5 cm off with a zero covariance:
+    beyond ``MAX_FRAME_DISTANCE`` a map is refused, by the search too, with what to do."""
+    from taichi_match import InvalidMapError, Matcher
+    from taichi_match.scenes import room
+
+    near = room()
+    moved = GridMap(near.prob, near.resolution, (far, 0.0, 0.0))
+    for a, b in ((moved, near), (near, moved)):
+        with pytest.raises(InvalidMapError, match="origin"):
+            Matcher().match(a, b, (0.0, 0.0, 0.0))
+        with pytest.raises(InvalidMapError, match="origin"):
+            Matcher().match(a, b)
+    assert Matcher().match(GridMap(near.prob, near.resolution, (5e4, 0.0, 0.0)),
+                           GridMap(near.prob, near.resolution, (5e4, 0.0, 0.0)), (0.05, 0.0, 0.0)).accepted
