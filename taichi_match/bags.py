@@ -12,6 +12,7 @@ a ROS installation. Conventions, beyond those of ``logs``:
 - A bag with several LaserScan (or Odometry) topics needs the topic named.
 """
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -70,6 +71,9 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
                 msg = reader.deserialize(raw, connection.msgtype)
                 if connection.topic == odom_name:
                     p, q = msg.pose.pose.position, msg.pose.pose.orientation
+                    if not abs(math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) - 1.0) <= 1e-3:
+                        raise LogFormatError(f"{path}: an odometry orientation that is not a unit quaternion "
+                                             f"({q.x}, {q.y}, {q.z}, {q.w}) at {_stamp(msg.header)} s")
                     odometry.append((_stamp(msg.header), p.x, p.y, yaw_of_quaternion(q.x, q.y, q.z, q.w)))
                 else:
                     scans.append(msg)

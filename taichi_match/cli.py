@@ -8,6 +8,8 @@ import sys
 
 __all__ = ["main"]
 
+MAX_WORKERS = 64          # align-many's worker processes, at most (each starts its own Taichi)
+
 
 def _demo(args):
     import numpy as np
@@ -192,8 +194,8 @@ def _align_many(args):
     from taichi_match.io import load_map
 
     options = _match_options(args)
-    if args.workers < 1:
-        raise tm.InvalidOptionError(f"--workers must be >= 1; got {args.workers}")
+    if not 1 <= args.workers <= MAX_WORKERS:
+        raise tm.InvalidOptionError(f"--workers must be 1 to {MAX_WORKERS}; got {args.workers}")
     pairs = _read_pairs(args.pairs, args.degrees)
     out = sys.stdout if args.output in (None, "-") else None
     if out is None:

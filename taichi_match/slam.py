@@ -101,6 +101,10 @@ SCAN_MODEL = SensorModel(hit=2.0, miss=-2.0)
 # graph, where odometry and the other scans outweigh it.
 SCAN_MIN_WALLS = 20
 MIN_CELLS_PER_RAY = 20           # max_ray_length / resolution, at least
+# ... and at most: a submap's canvas spans up to 2 max_ray_length / resolution cells a side, (2 x
+# 4096)^2 = 67 M cells of int32 counts (half a GB) and their grids (at 20 m rays and 0.002 m cells a
+# run held 9.8 GB before the counts' own limit refused it)
+MAX_CELLS_PER_RAY = 4096
 ODOMETRY_GATE = 16.27            # chi-square, 3 degrees of freedom, 99.9 %
 SCAN_MAX_UNCERTAINTY_M = 0.15
 NEIGHBOUR_PATH = 15.0            # metres of travel: loop closures this close at both ends vote
@@ -246,6 +250,10 @@ class SlamOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {shown(value)}")
+        if self.max_ray_length / self.resolution > MAX_CELLS_PER_RAY:
+            raise InvalidOptionError(f"max_ray_length / resolution must be at most {MAX_CELLS_PER_RAY} (a submap's "
+                                     f"canvas spans twice that many cells a side); got "
+                                     f"{shown(self.max_ray_length)} m / {shown(self.resolution)} m")
         if self.max_ray_length / self.resolution < MIN_CELLS_PER_RAY:
             raise InvalidOptionError(f"max_ray_length / resolution must be at least {MIN_CELLS_PER_RAY} (a ray "
                                      f"across at least that many cells, or a scan holds too few walls to match); got "

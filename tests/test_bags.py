@@ -37,11 +37,12 @@ def scan_msg(scan):
 
 
 
-def odom(t, x, y, yaw):
+def odom(t, x, y, yaw, scale=1.0):
     geometry = {k: T[f"geometry_msgs/msg/{k}"] for k in ("Point", "Quaternion", "Pose", "PoseWithCovariance",
                                                          "Vector3", "Twist", "TwistWithCovariance")}
     pose = geometry["Pose"](position=geometry["Point"](x=x, y=y, z=0.0),
-                            orientation=geometry["Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
+                            orientation=geometry["Quaternion"](x=0.0, y=0.0, z=scale * math.sin(yaw / 2),
+                                                               w=scale * math.cos(yaw / 2)))
     zero = geometry["Vector3"](x=0.0, y=0.0, z=0.0)
     return T["nav_msgs/msg/Odometry"](
         header=header(t, "odom"), child_frame_id="base_link",
@@ -50,7 +51,7 @@ def odom(t, x, y, yaw):
                                               covariance=np.zeros(36)))
 
 
-def write_bag(path, log, *, ros1=False, scans=True, odometry=True):
+def write_bag(path, log, *, ros1=False, scans=True, odometry=True, scale=1.0):
     """Odometry at each scan's time and half-way between scans; scans stamped 0.25 s after their
     odometry pose's time (``simulate_log``'s scans are 1 s apart)."""
     if ros1:
@@ -69,7 +70,7 @@ def write_bag(path, log, *, ros1=False, scans=True, odometry=True):
                 if k + 1 < len(log):
                     stops.append((scan.timestamp + 0.5, 0.5 * (poses[k] + poses[k + 1])))
                 for t, p in stops:
-                    writer.write(c_odom, int(t * 1e9), serialize(odom(t, *p), "nav_msgs/msg/Odometry"))
+                    writer.write(c_odom, int(t * 1e9), serialize(odom(t, *p, scale), "nav_msgs/msg/Odometry"))
             if scans:
                 writer.write(c_scan, int((scan.timestamp + 0.25) * 1e9),
                              serialize(scan_msg(scan), "sensor_msgs/msg/LaserScan"))
@@ -105,6 +106,14 @@ def test_bag_without_odometry_or_scans(run, tmp_path):
     write_bag(tmp_path / "empty", run.log, scans=False)
     with pytest.raises(LogFormatError, match="LaserScan"):
         read_rosbag(tmp_path / "empty")
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.5, 2.0])
+def test_odometry_orientations_must_be_unit_quaternions(run, tmp_path, scale):
+    """All-zero or non-unit orientations would give headings from a rotation nobody sent."""
+    write_bag(tmp_path / "bad", run.log, scale=scale)
+    with pytest.raises(LogFormatError, match="unit quaternion"):
+        read_rosbag(tmp_path / "bad")
 
 
 def test_unreadable_bag(tmp_path):

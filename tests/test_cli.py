@@ -343,4 +343,5 @@ def test_align_many_refuses_to_overwrite(pair, tmp_path, capsys):
     assert (tmp_path / "out.jsonl").read_text() == "keep"
     assert main(["align-many", str(tmp_path / "none.csv")]) == 2
     assert main(["align-many", str(pairs), "--workers", "0"]) == 2
+    assert main(["align-many", str(pairs), "--workers", "1000"]) == 2
     assert "workers" in capsys.readouterr().err

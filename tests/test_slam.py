@@ -314,7 +314,8 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("odometry_sd", (0.1, 0.1, 0.1, 0.0, 0.1)), ("max_ray_length", math.nan),
                                           ("target_refresh", 0), ("target_refresh", 2.0), ("target_refresh", True),
                                           ("loop_consistency", 1), ("share_coarse", 1), ("workers", -1),
-                                          ("workers", 1.0), ("workers", True), ("workers", 65), ("workers", None)])
+                                          ("workers", 1.0), ("workers", True), ("workers", 65), ("workers", None),
+                                          ("resolution", 0.002), ("max_ray_length", 300.0)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
