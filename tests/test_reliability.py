@@ -347,14 +347,23 @@ def test_plot_must_name_a_picture_file(pair, tmp_path, capsys):
     assert ".png" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("extra", [["--resolution-a", "1e-9"], ["--resolution-a", "1e-9", "--blur-kind", "gaussian"],
-                                   ["--blur", "1e6"], ["--blur", "1e6", "--blur-kind", "gaussian"]])
+@pytest.mark.parametrize("extra", [["--blur", "1e6"], ["--blur", "1e6", "--blur-kind", "gaussian"]])
 def test_absurd_but_valid_options_give_a_reported_result_not_a_crash(pair, capsys, extra):
     a, b = pair
     code = main(["align", str(a), str(b), "--initial", "0.15", "-0.1", "0.05", *extra])
     captured = capsys.readouterr()
     assert code in (0, 1) and "Traceback" not in captured.err
     assert "ACCEPTED" in captured.out           # the verdict line
+
+
+@pytest.mark.parametrize("extra", [["--resolution-a", "1e-9"], ["--resolution-a", "1e-9", "--blur-kind", "gaussian"],
+                                   ["--resolution-b", "1e5"]])
+def test_a_resolution_beyond_any_map_is_bad_input(pair, capsys, extra):
+    """Cells of a nanometre or 100 km (outside 1e-6 to 1e4 m) are refused, saying which map."""
+    a, b = pair
+    assert main(["align", str(a), str(b), "--initial", "0.15", "-0.1", "0.05", *extra]) == 2
+    err = capsys.readouterr().err
+    assert "out of range" in err and "Traceback" not in err
 
 
 def test_merge_into_an_existing_directory_name_exits_2(pair, tmp_path, capsys):
