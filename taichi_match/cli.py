@@ -5,6 +5,7 @@ import dataclasses
 import math
 import os
 import sys
+import tempfile
 
 __all__ = ["main"]
 
@@ -222,7 +223,16 @@ def _align_many(args):
     bar = _progress("align-many", len(pairs), args.progress or sys.stderr.isatty(), unit="pair")
     executor = (ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn"))
                 if args.workers > 1 else None)
-    stream = out or open(args.output, "w")
+    # an output that exists (--force) is replaced only once every line is written: an interrupted
+    # run leaves it as it was (a new one is written as the results come)
+    replacing = out is None and os.path.exists(args.output)
+    temporary, done = None, False
+    if replacing:
+        folder, name = os.path.split(os.path.abspath(args.output))
+        handle, temporary = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=folder)
+        stream = os.fdopen(handle, "w")
+    else:
+        stream = out or open(args.output, "w")
     try:
         results = tm.iter_matches(tasks, options, executor=executor, chunk_size=args.chunk_size, errors="return")
         while True:
@@ -240,11 +250,17 @@ def _align_many(args):
             index, res = next(results)
             k = runnable[index][0]
             lines[k] = {"error": str(res)} if isinstance(res, Exception) else _result_dict(res)
+        done = True
     finally:
         if executor is not None:
             executor.shutdown(cancel_futures=True)
         if out is None:
             stream.close()
+        if temporary is not None:
+            if done:
+                os.replace(temporary, args.output)
+            else:
+                os.unlink(temporary)
     if out is None:
         print(f"{accepted} of {len(pairs)} pairs accepted; wrote {args.output}", file=sys.stderr)
     return EXIT_OK if accepted == len(pairs) else EXIT_NOT_ACCEPTED

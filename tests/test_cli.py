@@ -314,6 +314,33 @@ def test_merge_refuses_a_map_far_finer_than_the_merged_one(pair, tmp_path, capsy
     assert "finer" in capsys.readouterr().err and not (tmp_path / "m.yaml").exists()
 
 
+def test_align_many_force_replaces_its_output_only_once_complete(pair, tmp_path, capsys, monkeypatch):
+    """With --force an earlier output stays as it was when the run is interrupted (no partial file,
+    no temporary left behind), and is replaced when the run completes."""
+    import taichi_match
+
+    pairs = write_pairs(tmp_path / "pairs.csv", [("a.yaml", "b.yaml", 0, 0, 0), ("b.yaml", "a.yaml", 0, 0, 0)])
+    output = tmp_path / "out.jsonl"
+    output.write_text("earlier\n")
+    real = taichi_match.iter_matches
+
+    def interrupted(*args, **kwargs):
+        results = real(*args, **kwargs)
+        yield next(results)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(taichi_match, "iter_matches", interrupted)
+    try:
+        main(["align-many", str(pairs), "-o", str(output), "--force"])
+    except KeyboardInterrupt:
+        pass
+    hidden = [path.name for path in tmp_path.iterdir() if path.name.startswith(".")]
+    assert output.read_text() == "earlier\n" and hidden == []
+    monkeypatch.setattr(taichi_match, "iter_matches", real)
+    assert main(["align-many", str(pairs), "-o", str(output), "--force"]) == 0
+    assert [json.loads(line)["row"] for line in output.read_text().splitlines()] == [1, 2]
+
+
 def test_align_many_on_two_workers_gives_the_same_lines(pair, tmp_path, capsys):
     pairs = write_pairs(tmp_path / "pairs.csv", [("a.yaml", "b.yaml", 0, 0, 0), ("b.yaml", "a.yaml", 0, 0, 0),
                                                  ("a.yaml", "b.yaml", 0.1, 0.1, 0.0)])
