@@ -6,6 +6,8 @@ radians. All stencil poses a step needs are returned as one (N, 3) batch so that
 evaluates them.
 """
 
+import functools
+
 import numpy as np
 
 from ._covariance import centroid_metric
@@ -113,12 +115,23 @@ def prior_terms(pose, initial_pose, weight, rotation_scale, min_norm):
     step past r0 to the edge of its trust region. The norm is taken as at least ``min_norm`` there.
     """
     d = np.asarray(pose, dtype=np.float64) - initial_pose
-    w = np.array([1.0, 1.0, rotation_scale**2])
+    w, diagonal = _prior_metric(rotation_scale)
     norm = float(np.sqrt(np.dot(w * d, d)))
-    curvature = weight * np.diag(w) / max(norm, min_norm)
+    curvature = weight * diagonal / max(norm, min_norm)
     if norm == 0.0:
         return 0.0, np.zeros(3), curvature
     return weight * norm, weight * w * d / norm, curvature
+
+
+@functools.lru_cache(maxsize=16)
+def _prior_metric(rotation_scale):
+    """(W's diagonal (1, 1, L^2), W) of the norm, read-only: made once per rotation scale (this
+    runs at every launch)."""
+    w = np.array([1.0, 1.0, rotation_scale**2])
+    diagonal = np.diag(w)
+    w.setflags(write=False)
+    diagonal.setflags(write=False)
+    return w, diagonal
 
 
 def prior(pose, initial_pose, weight, rotation_scale):
@@ -250,6 +263,9 @@ class LevelCost:
         self.z_steps = np.array([self.steps[0], self.steps[1],
                                  self.steps[0] if opts.rotation_step is None else opts.rotation_step * prep_b.spread])
         self.max_step = opts.max_step if opts.max_step is not None else max(opts.blur / 2.0, 4.0 * self.steps[0])
+        # the Hessian stencil's offsets in r and its steps' products, the same at every launch
+        self._hessian_offsets = _offsets(_HESS_STENCIL, self.z_steps, self._from_z)
+        self._step_products = np.outer(self.z_steps, self.z_steps)
 
     @property
     def counts_free(self):
@@ -310,9 +326,10 @@ class LevelCost:
         else:
             self._count(25, count)
             spared = getattr(self._engine, "dense_launches", 0)        # count="any": a launch only if needed
-            values, counts = self._engine(hessian_stencil(r, self.z_steps, self._from_z), count)
+            values, counts = self._engine(r + self._hessian_offsets, count)       # ``hessian_stencil``
             self._counter.launches += getattr(self._engine, "dense_launches", 0) - spared
-            grad_z, hess_z = gradient_from_stencil(values, self.z_steps), hessian_from_stencil(values, self.z_steps)
+            grad_z = gradient_from_stencil(values, self.z_steps)
+            hess_z = (_HESS_WEIGHTS @ values).reshape(3, 3) / self._step_products  # ``hessian_from_stencil``
             hess = self._to_z.T @ hess_z @ self._to_z                      # eq. (12) in r
         p_val, p_grad, h_prior = prior_terms(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
         extra = (values[0], None if counts is None else counts[0], hess)
