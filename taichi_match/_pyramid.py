@@ -63,14 +63,17 @@ def halve_code(code: np.ndarray, reduce: Literal["mean", "line"] = "line") -> np
     h, w = code.shape
     rows, cols = -(-h // 2), -(-w // 2)
     # a cell adds 5 if occupied and 1 if known: v (2 v - 1) = 0, 1, 6 for the codes v = 0, 1, 2
-    # (in bytes: 2 v - 1 wraps to 255 at v = 0, times 0)
-    weight = code * (np.uint8(2) * code - np.uint8(1))
-    if (h, w) != (2 * rows, 2 * cols):                   # a last odd row or column: its cells only
-        padded = np.zeros((2 * rows, 2 * cols), dtype=np.uint8)
-        padded[:h, :w] = weight
-        weight = padded
-    pairs = (weight[0::2] + weight[1::2]).view(np.uint16)     # the block's two columns in one number
-    index = (pairs & 0xFF) + (pairs >> 8)
+    # (in bytes: 2 v - 1 wraps to 255 at v = 0, times 0); a last odd row or column adds 0s. In
+    # place, few fresh arrays: on maps prepared and kept, each costs its pages' first touch
+    weight = np.zeros((2 * rows, 2 * cols), dtype=np.uint8) if (h, w) != (2 * rows, 2 * cols) else np.empty_like(code)
+    inner = weight[:h, :w]
+    np.multiply(code, np.uint8(2), out=inner)
+    inner -= np.uint8(1)
+    inner *= code
+    pairs = np.add(weight[0::2], weight[1::2]).view(np.uint16)     # the block's two columns in one number
+    index = pairs & np.uint16(0xFF)
+    pairs >>= np.uint16(8)
+    index += pairs
     return _BINARY_BLOCKS[reduce].take(index)
 
 
