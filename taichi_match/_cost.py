@@ -211,8 +211,12 @@ _HESS_WEIGHTS = _hessian_weights()
 
 def hessian_from_stencil(values, steps):
     """Eq. (12) from the 25 values of ``hessian_stencil``; returns the symmetric 3x3 Hessian."""
-    values = np.asarray(values, dtype=np.float64)
-    return (_HESS_WEIGHTS @ values).reshape(3, 3) / np.outer(steps, steps)
+    return _hessian(np.asarray(values, dtype=np.float64), np.outer(steps, steps))
+
+
+def _hessian(values, step_products):
+    """Eq. (12) from the 25 stencil values and the steps' products ``outer(steps, steps)``."""
+    return (_HESS_WEIGHTS @ values).reshape(3, 3) / step_products
 
 
 # ---------------------------------------------------------------------------------------------
@@ -329,7 +333,7 @@ class LevelCost:
             values, counts = self._engine(r + self._hessian_offsets, count)       # ``hessian_stencil``
             self._counter.launches += getattr(self._engine, "dense_launches", 0) - spared
             grad_z = gradient_from_stencil(values, self.z_steps)
-            hess_z = (_HESS_WEIGHTS @ values).reshape(3, 3) / self._step_products  # ``hessian_from_stencil``
+            hess_z = _hessian(values, self._step_products)
             hess = self._to_z.T @ hess_z @ self._to_z                      # eq. (12) in r
         p_val, p_grad, h_prior = prior_terms(r, self._r0, self.weight, self._rotation_scale, self.steps[0])
         extra = (values[0], None if counts is None else counts[0], hess)
