@@ -222,7 +222,7 @@ def count_traversals_taichi(segments, hit, shape, scan=None, offset=(0, 0), out=
 def _build_lookup(ti):
     @ti.kernel
     def lookup(hits: ti.types.ndarray(dtype=ti.i32, ndim=1), misses: ti.types.ndarray(dtype=ti.i32, ndim=1),
-               table: ti.types.ndarray(dtype=ti.f64, ndim=2), out: ti.types.ndarray(dtype=ti.f64, ndim=1)):
+               table: ti.types.ndarray(ndim=2), out: ti.types.ndarray(ndim=1)):
         for k in range(hits.shape[0]):
             out[k] = table[hits[k], misses[k]]
 
@@ -230,12 +230,13 @@ def _build_lookup(ti):
 
 
 def lookup_pairs_taichi(hits, misses, table):
-    """(H, W) float64 ``table[hits, misses]`` per cell, in one pass: the counts must lie within
-    the table (0 <= hits < table rows, 0 <= misses < table columns)."""
+    """(H, W) ``table[hits, misses]`` per cell, in one pass, of the table's dtype (float64 or
+    uint8): the counts must lie within the table (0 <= hits < table rows, 0 <= misses < table
+    columns)."""
     hits = np.ascontiguousarray(hits, dtype=np.int32)
     misses = np.ascontiguousarray(misses, dtype=np.int32)
-    table = np.ascontiguousarray(table, dtype=np.float64)
-    out = np.empty(hits.shape)
+    table = np.ascontiguousarray(table)
+    out = np.empty(hits.shape, dtype=table.dtype)
     if out.size:
         with kernel_lock():
             launch(kernels(_build_lookup), (hits.reshape(-1), misses.reshape(-1), table, out.reshape(-1)), None)

@@ -36,7 +36,7 @@ from typing import Literal, Optional
 import numpy as np
 
 from ._errors import InvalidOptionError, InvalidPoseError, shown
-from ._grid import GridMap, _trusted, trinary
+from ._grid import GridMap, _from_code, _trusted, trinary, trinary_code
 from ._se2 import as_poses
 
 __all__ = ["SensorModel", "beam_segments", "scans_to_grid", "BeamCounts", "trinary", "count_traversals"]
@@ -189,7 +189,7 @@ class BeamCounts:
         self.resolution, self.model, self.margin, self.engine = resolution, model, margin, engine
         self._offset = np.zeros(2, dtype=np.int64)    # lattice (row, col) of the arrays' cell [0, 0]
         self._hits = self._misses = np.zeros((0, 0), dtype=np.int32)
-        self._grid = None                             # the whole grid, until a beam is added
+        self._grids = {}                              # evidence -> the whole grid, until a beam is added
 
     def add(self, scans, poses) -> "BeamCounts":
         """Cast ``scans`` taken at ``poses`` (S, 3) in the grid's frame into the counts."""
@@ -217,19 +217,22 @@ class BeamCounts:
             self._hits, self._misses, self._offset = hits, misses, lo
         count_traversals(starts, ends, hit, tuple(self._offset), self.resolution, shape, self.engine, scan,
                          out=(self._hits, self._misses))
-        self._grid = None
+        self._grids = {}
         return self
 
-    def grid(self, bounds=None) -> Optional[GridMap]:
+    def grid(self, bounds=None, *, evidence: Literal["probability", "trinary"] = "probability") -> Optional[GridMap]:
         """The occupancy grid of the scans added so far (``scans_to_grid``); with ``bounds``
         (x_min, y_min, x_max, y_max) in the grid's frame, metres, only its cells that the box
         touches (the same cells, bit for bit; a mapping loop matches a scan against the part of a
         submap it can land on); None when the box touches none of its cells. The whole grid is
-        the same object until a beam is added (a matcher then finds it prepared)."""
+        the same object until a beam is added (a matcher then finds it prepared). ``evidence``:
+        "trinary" gives ``trinary`` of that grid, bit for bit, made from the counts directly."""
         if self._hits.size == 0:
             raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
-        if bounds is None and self._grid is not None:
-            return self._grid
+        if evidence not in ("probability", "trinary"):
+            raise InvalidOptionError(f"evidence must be 'probability' or 'trinary'; got {evidence!r}")
+        if bounds is None and evidence in self._grids:
+            return self._grids[evidence]
         model, hits, misses, offset = self.model, self._hits, self._misses, self._offset
         if bounds is not None:
             try:
@@ -247,12 +250,16 @@ class BeamCounts:
                 return None
             (r0, c0), (r1, c1) = (lo - offset).astype(np.int64), (hi - offset).astype(np.int64)
             hits, misses, offset = hits[r0:r1, c0:c1], misses[r0:r1, c0:c1], lo.astype(np.int64)
-        prob = _probabilities(hits, misses, model, self.engine)
+        values = _probabilities(hits, misses, model, self.engine, evidence == "trinary")
         # the corner on the lattice: the same float as (floor(x / resolution) - margin) * resolution
         corner = offset[::-1].astype(np.float64) * self.resolution
-        grid = _trusted(prob, self.resolution, (float(corner[0]), float(corner[1]), 0.0))   # in (0, 1) or NaN
+        corner = (float(corner[0]), float(corner[1]), 0.0)
+        if evidence == "trinary":
+            grid = _from_code(values, self.resolution, corner)
+        else:
+            grid = _trusted(values, self.resolution, corner)              # in (0, 1) or NaN
         if bounds is None:
-            self._grid = grid
+            self._grids[evidence] = grid
         return grid
 
 
@@ -266,11 +273,13 @@ class BeamCounts:
 MAX_TABLE = 2**16
 
 
-def _probabilities(hits, misses, model, engine="taichi"):
+def _probabilities(hits, misses, model, engine="taichi", code=False):
     """(H, W) 1 / (1 + exp(-clip(hit * hits + miss * misses, -clamp, clamp))) per cell, NaN where
     no beam reached (both counts 0): from a table of the count pairs when it is small
     (``MAX_TABLE``), else on the known cells only (a fifth of a laser submap's canvas), in place
-    (fresh arrays cost page faults)."""
+    (fresh arrays cost page faults). ``code``: their ``trinary_code`` instead, read from the
+    table's codes (a byte a cell written, where the probabilities take eight and the codes a pass
+    over them)."""
     most_hits, most_misses = int(hits.max()), int(misses.max())
     from_table = (most_hits + 1) * (most_misses + 1) <= MAX_TABLE
     if from_table:
@@ -288,21 +297,23 @@ def _probabilities(hits, misses, model, engine="taichi"):
     np.divide(1.0, p, out=p)
     if from_table:
         p[0, 0] = np.nan
+        table = trinary_code(p) if code else p
         if engine == "taichi":
             from ._raycast import lookup_pairs_taichi
 
-            return lookup_pairs_taichi(hits, misses, p)
+            return lookup_pairs_taichi(hits, misses, table)
         index = hits.astype(np.intp)              # take() casts other indices first: 10x slower
         index *= most_misses + 1
         index += misses
-        return p.reshape(-1).take(index)
+        return table.reshape(-1).take(index)
     prob = np.full(hits.shape, np.nan)
     prob[known] = p
-    return prob
+    return trinary_code(prob) if code else prob
 
 
 def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel = SensorModel(),
-                  margin: int = 2, engine: Literal["taichi", "numpy"] = "taichi") -> GridMap:
+                  margin: int = 2, engine: Literal["taichi", "numpy"] = "taichi",
+                  evidence: Literal["probability", "trinary"] = "probability") -> GridMap:
     """An occupancy grid (probabilities, NaN unobserved) from ``scans`` taken at ``poses``.
 
     Parameters
@@ -317,5 +328,8 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
     margin : int
         Unknown cells added on each side.
     engine : "taichi" (one parallel launch for all beams) or "numpy" (the reference).
+    evidence : "probability", or "trinary": the grid's ``trinary`` map (occupied 1, free 0, the
+        rest unknown), bit for bit, made from the counts directly (cheaper: a byte a cell).
     """
-    return BeamCounts(resolution=resolution, model=model, margin=margin, engine=engine).add(scans, poses).grid()
+    grid = BeamCounts(resolution=resolution, model=model, margin=margin, engine=engine).add(scans, poses)
+    return grid.grid(evidence=evidence)

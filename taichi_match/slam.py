@@ -393,15 +393,17 @@ class Slam:
         return np.array([len(beam_segments([scan], np.zeros((1, 3)), self._map_model)[0]) > 0 for scan in log.scans])
 
     def _submap_grid(self, log, submap, est, cast=None, bounds=None):
-        grid, _ = self._cast_submap(log, submap, est, cast, bounds)
+        """The front end's target: ``_cast_submap``'s grid, in the scan matcher's evidence."""
+        grid, _ = self._cast_submap(log, submap, est, cast, bounds, self._scan_matcher.options.evidence)
         return grid
 
-    def _cast_submap(self, log, submap, est, cast=None, bounds=None):
+    def _cast_submap(self, log, submap, est, cast=None, bounds=None, evidence="probability"):
         """The submap's scans (those with ``cast`` true) cast at their estimates in its frame:
         (grid, (scans, poses in the frame)). Between two optimisations the estimates stay put, so
         the beam counts of a submap cast before are kept (``_counts``) and only its scans not yet
         in them are cast: the same grid, bit for bit (``BeamCounts``), as casting them all.
-        ``bounds``: only the grid's cells within that box of the frame (``BeamCounts.grid``)."""
+        ``bounds``: only the grid's cells within that box of the frame (``BeamCounts.grid``);
+        ``evidence`` "trinary": its trinary map, made from the counts directly (``BeamCounts.grid``)."""
         scans = submap.scans if cast is None else [j for j in submap.scans if cast[j]]
         origin = inverse(est[submap.key])
         poses = np.array([compose(origin, est[j]) for j in scans])
@@ -412,7 +414,7 @@ class Slam:
         new = [i for i, j in enumerate(scans) if j not in added]
         counts.add([log.scans[scans[i]] for i in new], poses[new])
         added.update(scans[i] for i in new)
-        return counts.grid(bounds), (scans, poses)
+        return counts.grid(bounds, evidence=evidence), (scans, poses)
 
     def _member_edge(self, gtsam, graph, submap, k, est):
         """The edge that ties scan ``k`` to the frame of a submap it lies in when no match of ``k``
@@ -490,7 +492,7 @@ class Slam:
             if usable[k] and castable[target.scans].any():
                 t0 = time.perf_counter()
                 scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
-                                          model=self._scan_model)
+                                          model=self._scan_model, evidence=self._scan_matcher.options.evidence)
                 t1 = time.perf_counter()
                 preparing = 0.0                           # preparing the target: the match's time
                 whole = target_cast is None or target_cast[0] is not target

@@ -432,6 +432,39 @@ def test_beam_counts_within_bounds_are_the_window_of_the_whole_grid():
             counts.grid(bad)
 
 
+@pytest.mark.parametrize("engine", ENGINES)
+def test_trinary_evidence_is_the_trinary_map_of_the_grid(engine):
+    """``evidence="trinary"`` gives ``trinary`` of the probability grid bit for bit (the oracle:
+    ``trinary`` applied afterwards, cell by cell thresholds), whole and within bounds, from the
+    table of count pairs and, with counts too large for it, from the cells; the two evidences
+    keep their own whole grid."""
+    poses = np.array([[0.0, 0.0, 0.0], [1.1, 0.4, 0.6], [-1.7, -0.9, 2.5]])
+    counts = BeamCounts(resolution=0.1, engine=engine).add(room_scans(poses), poses)
+    whole = counts.grid()
+    code = counts.grid(evidence="trinary")
+    assert counts.grid(evidence="trinary") is code and counts.grid() is whole
+    assert same_grid(code, trinary(whole))
+    assert set(np.unique(np.nan_to_num(code.prob, nan=-1.0))) == {-1.0, 0.0, 1.0}
+    x0, x1, y0, y1 = whole.extent
+    box = (x0 + 1.03, y0 + 0.47, x1 - 2.21, y1 - 0.05)
+    assert same_grid(counts.grid(box, evidence="trinary"), trinary(counts.grid(box)))
+    assert same_grid(scans_to_grid(room_scans(poses), poses, resolution=0.1, engine=engine, evidence="trinary"),
+                     trinary(scans_to_grid(room_scans(poses), poses, resolution=0.1, engine=engine)))
+    from taichi_match.scans import MAX_TABLE, _probabilities
+
+    rng = np.random.default_rng(3)
+    hits = rng.integers(0, 400, (31, 47)).astype(np.int32)
+    misses = rng.integers(0, 3000, (31, 47)).astype(np.int32)
+    hits[::4], misses[::4] = 0, 0
+    assert (int(hits.max()) + 1) * (int(misses.max()) + 1) > MAX_TABLE
+    model = SensorModel()
+    prob = _probabilities(hits, misses, model, engine)
+    np.testing.assert_array_equal(_probabilities(hits, misses, model, engine, code=True),
+                                  (prob < 0.196) * 1 + (prob > 0.65) * 2)
+    with pytest.raises(InvalidOptionError, match="evidence"):
+        counts.grid(evidence="binary")
+
+
 def test_beams_without_a_return_are_free_up_to_no_return_length():
     pose = np.array([[0.2, -0.3, 0.4]])
     scan = Scan(0.0, np.full(181, 30.0), ANGLES, pose[0], 30.0)          # nothing within range
