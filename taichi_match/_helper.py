@@ -3,8 +3,10 @@ loop-closure candidates (``slam``), so that more than one core matches at once.
 
 A helper is a fresh interpreter (``python -c``; not ``multiprocessing``, which would run the
 caller's main script again in it) with its own Taichi on one thread. It talks over a pair of pipes
-(``multiprocessing.connection.Connection``: pickled messages); its stdout goes nowhere (Taichi
-prints). It keeps the maps it is sent, by key, as ``many._portable`` makes them (a byte a cell
+(``multiprocessing.connection.Connection``: pickled messages); its stdout and stderr go nowhere
+(Taichi prints; a failure comes back as a message). It runs at the idle priority, so that it
+never slows the caller's kernels (which use every core), and Taichi without its offline cache
+(see ``Helper.start``). It keeps the maps it is sent, by key, as ``many._portable`` makes them (a byte a cell
 with ``evidence="trinary"``), and its matcher prepares each once. A match depends only on its
 maps, guess and options, not on the process (``many``): which process ran a task changes nothing
 in the results, bit for bit. A helper that fails in any way (it died, a pipe broke, a task
@@ -38,11 +40,15 @@ class Helper:
             return None
         down, up = os.pipe(), os.pipe()            # (read, write) to the helper, from it
         package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (package, os.environ.get("PYTHONPATH")) if p))
+        # Taichi without its offline cache: the cache's lock file, taken while the cache is read
+        # at the start and written at exit, stayed locked for every later Taichi process (each
+        # then warned at exit) when a helper was killed meanwhile; compiling costs it about 0.6 s
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (package, os.environ.get("PYTHONPATH")) if p),
+                   TI_OFFLINE_CACHE="0")
         code = f"from taichi_match._helper import serve; serve({down[0]}, {up[1]})"
         try:
             process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(down[0], up[1]), env=env,
-                                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+                                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         except OSError:
             for fd in (*down, *up):
                 os.close(fd)
@@ -132,6 +138,10 @@ def serve(down: int, up: int):
     from .scenes import room
 
     set_threads(1)
+    try:                                    # the caller's threads first
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        os.nice(19)
     inbox, outbox = Connection(down, writable=False), Connection(up, readable=False)
     maps = {}
     try:

@@ -88,8 +88,12 @@ def taichi():
             before = _thread_ids()
             with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
                 warnings.simplefilter("ignore", DeprecationWarning)
+                # Taichi's offline cache of compiled kernels, unless TI_OFFLINE_CACHE says otherwise
+                # (helper processes: one killed while it holds the cache's lock file would leave
+                # it locked; Taichi warns when an argument overrides the variable)
+                cache = {} if "TI_OFFLINE_CACHE" in os.environ else {"offline_cache": True}
                 ti.init(arch=ti.cpu, cpu_max_num_threads=_STATE["threads"] or len(_allowed_cpus()),
-                        offline_cache=True, log_level=ti.WARN)
+                        log_level=ti.WARN, **cache)
             if _STATE["threads"] is None and os.environ.get("TAICHI_MATCH_PIN_THREADS", "1") != "0":
                 _pin_threads(sorted(_thread_ids() - before))
         return ti

@@ -199,10 +199,14 @@ class SlamOptions:
         log): belgioioso and fhw still worse, loop closing still 2-4x.
     workers : helper processes that match a share of the loop-closure candidates while this one
         matches the others (``_helper``): the same results bit for bit. Not the default: on this
-        2-core machine (2026-12-03, two runs each way per log, alternating) one helper made fhw's
-        loop-closing stage 0.75-0.85 of its time (12.3-13.3 against 14.5-17.3 ms per scan) but
-        seattle's, csail's and belgioioso's 1.0-1.4 times as long (seattle 11.6 against 7.7-9.0
-        ms): this process's Taichi kernels run on both cores, and a busy helper slows them.
+        2-core machine (2026-12-03, two runs each way per log, alternating) one helper at the
+        idle priority made fhw's loop 0.91 times as long per scan (28.5 -> 25.9 ms), csail's 0.98,
+        but seattle's 1.07 (27.7 -> 29.6): its matches prepare both maps again, and it gets the
+        second core only while this process runs Python. Matching a submap's closures in the
+        background instead (judged when the next submap completes, this process going on with
+        the scans) made the loop 0.85-0.95 times as long on every log, but raised the median ATE
+        over ten jittered runs on orebro (0.126 -> 0.159 m) and belgioioso (0.132 -> 0.145), where
+        aces and fhw gained: not kept.
     robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
         closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
     loop_consistency : an accepted loop closure enters the graph only when the loop closures

@@ -36,6 +36,22 @@ def test_import_does_not_start_taichi_and_a_match_prints_nothing():
     assert out.stdout == "" and out.stderr == ""
 
 
+def test_offline_cache_follows_ti_offline_cache_silently():
+    """With ``TI_OFFLINE_CACHE=0`` (as helper processes run) Taichi starts without its offline
+    cache, and without the warning it gives when an argument overrides the variable."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("TI_", "ENABLE_TAICHI"))}
+    out = subprocess.run([sys.executable, "-c", textwrap.dedent("""
+        import numpy as np
+        import taichi_match as tm
+        a = tm.GridMap(np.zeros((30, 30)), 0.1)
+        tm.match(a, a, (0.0, 0.0, 0.0))
+        import taichi as ti
+        assert not ti.lang.impl.current_cfg().offline_cache
+    """)], capture_output=True, text=True, timeout=300, env=dict(env, TI_OFFLINE_CACHE="0"))
+    assert out.returncode == 0, out.stderr
+    assert out.stdout == "" and out.stderr == ""
+
+
 def test_a_host_runtime_is_reused_not_reset():
     out = run_python("""
         import contextlib, io

@@ -3,6 +3,7 @@ and the trajectory metrics against evo."""
 
 import dataclasses
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -126,6 +127,28 @@ def test_helper_processes_change_nothing(simulated, mapped):
     helped = Slam(workers=2).run(simulated.log)
     assert helped.poses.tobytes() == mapped.poses.tobytes()
     assert any(loop["helper"] for loop in helped.loops) and not any(loop["helper"] for loop in mapped.loops)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc and the Linux scheduler")
+def test_a_helper_runs_at_the_idle_priority_without_taichis_offline_cache():
+    """A helper may be killed at any time: without the offline cache it never holds the cache's
+    lock file (one killed holding it left the cache locked for every later Taichi process); at
+    the idle priority it never slows the loop's own kernels. Read from the process itself."""
+    import os
+
+    from taichi_match import MatchOptions
+    from taichi_match._helper import Helper
+
+    helper = Helper.start(MatchOptions())
+    try:
+        pid = helper._process.pid
+        with open(f"/proc/{pid}/environ", "rb") as environ:
+            assert b"TI_OFFLINE_CACHE=0" in environ.read().split(b"\0")
+        helper.collect(wait=True)                          # ready: the priority is set by then
+        assert helper.alive
+        assert os.sched_getscheduler(pid) == os.SCHED_IDLE
+    finally:
+        helper.close()
 
 
 @pytest.fixture(scope="module")
