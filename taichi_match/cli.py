@@ -370,11 +370,19 @@ def _merge(args):
 def _slam(args):
     import numpy as np
 
+    from taichi_match import InvalidOptionError
     from taichi_match.logs import read_carmen, read_tum
     from taichi_match.slam import Slam, SlamOptions, output_paths, write_outputs
 
     output_paths(args.out, force=args.force, keep=(args.log, args.reference))      # before any work
-    if os.path.isdir(args.log) or os.path.splitext(args.log)[1] in (".bag", ".db3", ".mcap"):
+    bag = os.path.isdir(args.log) or os.path.splitext(args.log)[1] in (".bag", ".db3", ".mcap")
+    if bag and args.max_range is not None:
+        raise InvalidOptionError("--max-range applies to CARMEN logs only (a bag's LaserScan gives its own "
+                                 "range_max)")
+    for flag, topic in (("--scan-topic", args.scan_topic), ("--odom-topic", args.odom_topic)):
+        if not bag and topic is not None:
+            raise InvalidOptionError(f"{flag} applies to ROS bags only ({args.log} is read as a CARMEN log)")
+    if bag:
         from taichi_match.bags import read_rosbag
 
         log, left_out = read_rosbag(args.log, scan_topic=args.scan_topic, odometry_topic=args.odom_topic)
@@ -648,6 +656,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if getattr(args, "trials", 1) < 1 or getattr(args, "covariance_trials", 2) < 2:
         parser.error("--trials must be >= 1 and --covariance-trials >= 2")
+    if getattr(args, "g2o", None) is not None and min(args.g2o) < 0:
+        parser.error(f"--g2o takes two vertex ids >= 0; got {args.g2o[0]} {args.g2o[1]}")
     if getattr(args, "degrees", False) and args.command != "align-many":
         name = "initial" if args.command == "align" else "pose"
         if getattr(args, name) is None:

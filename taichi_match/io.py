@@ -36,6 +36,7 @@ A map written as map_server files and read back, unchanged:
 """
 
 import contextlib
+import functools
 import os
 import signal
 import stat
@@ -142,7 +143,7 @@ def read_map_yaml(yaml_path: PathLike) -> dict[str, Any]:
     yaml = _yaml()
     data = _read_bounded(yaml_path, MAX_YAML_BYTES, "map YAML")
     try:
-        meta = yaml.safe_load(data.decode("utf-8"))
+        meta = yaml.load(data.decode("utf-8"), Loader=_unique_key_loader(yaml))
     except UnicodeDecodeError as exc:
         raise MapFormatError(f"{yaml_path}: not a text YAML file ({exc})") from exc
     except yaml.YAMLError as exc:
@@ -172,6 +173,31 @@ def _yaml():
     except ImportError as exc:                   # pragma: no cover - depends on the installation
         raise ImportError("map_server maps need PyYAML and Pillow: pip install 'taichi-match[maps]'") from exc
     return yaml
+
+
+@functools.lru_cache(maxsize=None)
+def _unique_key_loader(yaml):
+    """PyYAML's safe loader, refusing a mapping that names a key twice (``safe_load`` keeps the
+    last silently: a map file with two resolutions is ambiguous, not the second one)."""
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen = set()
+            for key_node, _ in node.value:            # the keys as written (merges ``<<`` come later)
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=deep)
+                try:
+                    duplicate = key in seen
+                except TypeError:                     # unhashable: the safe loader says so itself
+                    continue
+                if duplicate:
+                    raise yaml.constructor.ConstructorError(None, None, f"the key {key!r} appears twice",
+                                                            key_node.start_mark)
+                seen.add(key)
+            return super().construct_mapping(node, deep)
+
+    return UniqueKeyLoader
 
 
 def _pillow():

@@ -37,6 +37,10 @@ __all__ = ["Scan", "LaserLog", "read_carmen", "write_carmen", "read_tum", "write
 
 # Lines longer than this are refused (the longest real laser lines hold a few thousand numbers).
 _MAX_LINE = 1 << 20
+# A log holds at most this many lines (a laser log of a million scans has a few million): a gzip
+# of nothing but newlines, a thousand times smaller than what it unpacks to, is refused in seconds
+# rather than read for minutes
+MAX_LINES = 20_000_000
 _MAX_BEAMS = 100_000
 MAX_COORDINATE = 1e6         # metres: poses farther from the origin are refused as corrupt
 MAX_ANGLE = 1e3              # radians (headings may be unwrapped, but not by 1e20)
@@ -99,6 +103,8 @@ def _lines(path):
                 if not line:
                     break
                 number += 1
+                if number > MAX_LINES:
+                    raise LogFormatError(f"{path}: more than {MAX_LINES} lines: not a laser log this reader takes")
                 if len(line) > _MAX_LINE:
                     raise LogFormatError(f"{path}:{number}: line longer than {_MAX_LINE} characters")
                 yield number, line.strip()

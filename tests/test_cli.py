@@ -44,6 +44,14 @@ def test_align_prints_the_g2o_edge_as_text_without_json(pair, capsys):
     assert len(edges) == 1 and len(edges[0].split()) == 12
 
 
+def test_align_refuses_negative_g2o_vertex_ids(pair, capsys):
+    a, b, _ = pair
+    with pytest.raises(SystemExit) as stop:
+        main(["align", str(a), str(b), "--initial", "0", "0", "0", "--g2o", "-1", "4"])
+    assert stop.value.code == 2
+    assert "--g2o takes two vertex ids >= 0" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("extra", [["--interpolation", "bilinear", "--blur-kind", "gaussian", "--blur", "0.5"],
                                    ["--optimizer", "bfgs"]])
 def test_align_with_other_methods(pair, capsys, extra):

@@ -126,6 +126,8 @@ BOMB = "l0: &l0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
     ("image: m.pgm\nresolution: 1e300\norigin: [0, 0, 0]\n", "out of range"),
     ("image: m.pgm\nresolution: 1e-300\norigin: [0, 0, 0]\n", "out of range"),
     (BOMB + "image: m.pgm\nresolution: 0.1\norigin: *l9\n", "'origin' must be"),
+    ("image: m.pgm\nresolution: 0.1\norigin: [0, 0, 0]\nresolution: 0.05\n", "'resolution' appears twice"),
+    ("image: m.pgm\nresolution: 0.1\norigin: {x: 0, x: 1}\n", "'x' appears twice"),
 ])
 def test_malformed_yaml_gives_clear_errors(tmp_path, text, match):
     io.write_image(str(tmp_path / "m.pgm"), np.zeros((2, 2), np.uint8))
@@ -133,6 +135,15 @@ def test_malformed_yaml_gives_clear_errors(tmp_path, text, match):
     with pytest.raises(MapFormatError, match=match) as error:
         io.read_ros_map(tmp_path / "m.yaml")
     assert len(str(error.value)) < 2000                  # a hostile value is shown in part
+
+
+def test_yaml_merge_keys_may_repeat_what_they_merge(tmp_path):
+    """A key written after a merge (``<<``) overrides the merged one, as YAML says: not a duplicate."""
+    io.write_image(str(tmp_path / "m.pgm"), np.zeros((2, 2), np.uint8))
+    (tmp_path / "m.yaml").write_text("base: &b {resolution: 0.2, origin: [1, 2, 0]}\n<<: *b\nimage: m.pgm\n"
+                                     "resolution: 0.05\n")
+    grid = io.read_ros_map(tmp_path / "m.yaml")
+    assert grid.resolution == 0.05 and grid.origin == (1.0, 2.0)
 
 
 def test_missing_and_corrupt_files(tmp_path):

@@ -164,6 +164,19 @@ def test_logs_without_scans_and_overlong_lines(tmp_path):
         read_carmen(write(tmp_path / "long.log.gz", [long_line], gzipped=True))
 
 
+def test_a_gzip_of_newlines_is_refused_at_the_line_limit(tmp_path, monkeypatch):
+    """A gzip that unpacks to nothing but newlines (a thousand times its size) is refused once it
+    passes ``MAX_LINES`` lines, not read to its end."""
+    import taichi_match.logs as logs
+
+    monkeypatch.setattr(logs, "MAX_LINES", 1000)
+    (tmp_path / "bomb.log.gz").write_bytes(gzip.compress(b"\n" * 100_000))
+    with pytest.raises(LogFormatError, match="more than 1000 lines"):
+        read_carmen(tmp_path / "bomb.log.gz")
+    (tmp_path / "fine.log").write_text("\n".join(LOG_LINES) + "\n")       # fewer lines: read
+    assert len(read_carmen(tmp_path / "fine.log")) > 0
+
+
 def test_unreadable_files_raise_log_file_error(tmp_path):
     for reader in (read_carmen, read_tum):
         with pytest.raises(LogFileError, match="not a regular file"):

@@ -251,6 +251,21 @@ def test_cli_slam(short_run, tmp_path, capsys):
     assert err.startswith("taichi-match: error:") and "Traceback" not in err
 
 
+def test_cli_slam_refuses_options_that_do_not_apply_to_the_input(short_run, tmp_path, capsys):
+    """A bag's topics given for a CARMEN log, or a CARMEN log's maximum range for a bag, would be
+    ignored: they are refused before any work."""
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    for flag in ("--scan-topic", "--odom-topic"):
+        assert main(["slam", str(log_path), "--out", str(tmp_path / "out"), flag, "/scan"]) == 2
+        assert f"{flag} applies to ROS bags only" in capsys.readouterr().err
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"")
+    assert main(["slam", str(bag), "--out", str(tmp_path / "out"), "--max-range", "30"]) == 2
+    assert "--max-range applies to CARMEN logs only" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_cli_slam_submap_frames(short_run, tmp_path):
     """``--submap-frames`` reaches the loop: the graph file holds a node per submap beyond the scans'."""
     log_path = tmp_path / "run.log"
