@@ -17,6 +17,8 @@ FLASER lines), then against ``NAME.reference.tum``:
 - scan-to-submap matches accepted; wall time per scan, per stage; the front-end match's median
   (preparing the new submap and scan included), and in parts;
 - a picture per log: the trajectory and the reference over the map (``--plots DIR``);
+- the machine's speed before and after the runs (``bench/yardstick.py``: the corridor's match
+  median), to set the times beside another run's;
 - with ``--jitter N``: N more runs per log with every odometry pose moved by about a micrometre
   and a microradian (seeded noise, far below any sensor's resolution), and the spread of ATE,
   RPE and wrong loops over the N + 1 runs. The loop is chaotic (a grazing beam counted in the
@@ -47,6 +49,9 @@ from taichi_match import compose, inverse, wrap_angle
 from taichi_match.evaluation import align_se2, trajectory_errors
 from taichi_match.logs import read_carmen, read_tum
 from taichi_match.slam import Slam
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from yardstick import corridor_median_ms  # noqa: E402
 
 LOGS = Path(__file__).resolve().parents[2] / "shared" / "logs"
 TARGETS = {"ate_m": 0.10, "ate_deg": 1.0, "rpe_m": 0.03, "rpe_deg": 0.3}
@@ -227,6 +232,7 @@ def main():
     from taichi_match.reproduce import git_revision
 
     started = time.perf_counter()
+    yardstick = [corridor_median_ms()]          # the machine's speed, before and after the runs
     rows, spreads = [], {}
 
     def jitter_runs(name, log, reference):
@@ -251,12 +257,15 @@ def main():
             shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()
                      if k not in ("stages", "match_parts_ms")}
             print(name, shown, flush=True)
+    yardstick.append(corridor_median_ms())
     text = ["# The mapping loop on real laser logs", "",
             f"`python bench/slam.py {' '.join(sys.argv[1:])}` at revision {git_revision()}, {datetime.date.today()}, "
             f"{os.cpu_count()}-core machine, {time.perf_counter() - started:.0f} s. "
             f"{'Options: ' + ', '.join(args.set) if args.set else 'Default options'}. Targets: ATE <= "
             f"0.10 m and 1 deg, RPE over 10 scans <= 0.03 m and 0.3 deg, ATE <= odometry's / 10, no wrong loop "
-            f"closure, <= 25 ms per scan; * marks a miss.", "", table(rows)]
+            f"closure, <= 25 ms per scan; * marks a miss. The machine's speed (`bench/yardstick.py`: the paper's "
+            f"corridor matched, median): {yardstick[0]:.1f} ms before the runs, {yardstick[1]:.1f} ms after.",
+            "", table(rows)]
     if spreads:
         text += ["", f"The same logs with every odometry pose moved by about 1e-6 m and 1e-6 rad (seeded), "
                      f"{args.jitter} more runs each: the spread over all runs.", "", spread_table(spreads)]

@@ -45,6 +45,7 @@ from taichi_match.scenes import corridor
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import real_maps  # noqa: E402
 import submaps  # noqa: E402
+from yardstick import corridor_median_ms  # noqa: E402
 
 SCANS, STRIDE = 40, 20
 OFFSET = np.array([0.1, -0.1, 0.05])
@@ -204,19 +205,6 @@ def memory_figures(tasks, matches=10_000, every=10):
         if (k + 1) % (matches // 10) == 0:
             samples.append(status_mb("VmRSS"))
     return samples
-
-
-def corridor_median_ms(trials=50):
-    grid = corridor()
-    matcher = tm.Matcher()
-    rng = np.random.default_rng(0)
-    times = []
-    for _ in range(trials):
-        guess = rng.uniform(-1, 1, 3) * (0.5, 0.5, 0.1)
-        t0 = time.perf_counter()
-        matcher.match(grid, grid, guess)
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
 
 
 def main():
