@@ -6,8 +6,8 @@ caller's main script again in it) with its own Taichi on one thread. It talks ov
 (``multiprocessing.connection.Connection``: pickled messages); its stdout and stderr go nowhere
 (Taichi prints; a failure comes back as a message). It runs at the idle priority, so that it
 never slows the caller's kernels (which use every core), and Taichi without its offline cache
-(see ``Helper.start``). It keeps the maps it is sent, by key, as ``many._portable`` makes them (a byte a cell
-with ``evidence="trinary"``), and its matcher prepares each once. A match depends only on its
+(see ``Helper.start``). It keeps the maps it is sent, by key, as ``many._portable`` makes them
+(a byte a cell with ``evidence="trinary"``), and its matcher prepares each once. A match depends only on its
 maps, guess and options, not on the process (``many``): which process ran a task changes nothing
 in the results, bit for bit. A helper that fails in any way (it died, a pipe broke, a task
 raised) is no longer used, and the caller runs its task itself.

@@ -331,5 +331,5 @@ def scans_to_grid(scans, poses, *, resolution: float = 0.05, model: SensorModel 
     evidence : "probability", or "trinary": the grid's ``trinary`` map (occupied 1, free 0, the
         rest unknown), bit for bit, made from the counts directly (cheaper: a byte a cell).
     """
-    grid = BeamCounts(resolution=resolution, model=model, margin=margin, engine=engine).add(scans, poses)
-    return grid.grid(evidence=evidence)
+    counts = BeamCounts(resolution=resolution, model=model, margin=margin, engine=engine).add(scans, poses)
+    return counts.grid(evidence=evidence)
