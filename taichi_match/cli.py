@@ -402,8 +402,11 @@ def _slam(args):
                                                ("submap_frames", args.submap_frames or None),
                                                ("share_coarse", args.share_coarse or None),
                                                ("crop_target", args.crop_target or None),
-                                               ("loop_search", args.loop_search), ("workers", args.workers))
+                                               ("loop_search", args.loop_search), ("workers", args.workers),
+                                               ("loop_ties", None if args.loop_ties == "off" else args.loop_ties))
                              if v is not None})
+    if args.loop_ties == "off":
+        options = dataclasses.replace(options, loop_ties=None)
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
     paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference))
@@ -463,6 +466,11 @@ def _demo_slam(args):
         except ImportError as exc:
             print(f"picture not written: {exc}")
     return EXIT_OK
+
+
+def _metres_or_off(text: str):
+    """A number of metres, or "off"."""
+    return "off" if text.strip().lower() == "off" else float(text)
 
 
 def _progress(label, total, enabled, unit="scan"):
@@ -635,6 +643,9 @@ def main(argv=None):
     slam.add_argument("--loop-search", type=float, metavar="METRES",
                       help="search loop-closure candidates whose drift bound exceeds this within a window first "
                            "(see SlamOptions.loop_search)")
+    slam.add_argument("--loop-ties", type=_metres_or_off, metavar="METRES",
+                      help="skip loop-closure candidates that closures already in the graph tie within this many "
+                           "metres of travel, or 'off' (see SlamOptions.loop_ties)")
     slam.add_argument("--submap-frames", action="store_true",
                       help="give each submap its own node in the pose graph (see SlamOptions.submap_frames)")
     slam.add_argument("--share-coarse", action="store_true",

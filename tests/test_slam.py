@@ -278,7 +278,8 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
 
 @pytest.mark.parametrize("flag, field, values", [("--share-coarse", "share_coarse", (True, False)),
                                                  ("--crop-target", "crop_target", (True, False)),
-                                                 ("--workers", "workers", (1, 0))])
+                                                 ("--workers", "workers", (1, 0)),
+                                                 ("--loop-ties", "loop_ties", (5.0, None))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is off without them."""
@@ -681,3 +682,39 @@ def test_loop_search_searches_candidates_beyond_the_basin(simulated):
     for bad in (-1.0, float("nan"), "1"):
         with pytest.raises(InvalidOptionError):
             SlamOptions(loop_search=bad)
+
+
+def test_loop_ties_by_hand():
+    """Frames at 0-100 m of travel (key = metres): closures 10-50 and 52-90 tie 11-51 (one closure,
+    1 + 1 m of travel from its ends) and 10-90 (two, 2 m apart), within 2 m in all; not 9-89 (1 + 2
+    + 1 m), 30-70, nor 11-51 within 1 m."""
+    from taichi_match.slam import _tied
+
+    travelled = np.arange(101.0)
+    edges = [{"frames": (10, 50)}, {"frames": (52, 90)}]
+    assert not _tied(11, 51, [], travelled, 2.0)
+    assert _tied(11, 51, edges, travelled, 2.0) and _tied(51, 11, edges, travelled, 2.0)
+    assert _tied(10, 90, edges, travelled, 2.0) and not _tied(10, 90, edges, travelled, 1.9)
+    assert not _tied(9, 89, edges, travelled, 3.9) and _tied(9, 89, edges, travelled, 4.0)
+    assert not _tied(30, 70, edges, travelled, 2.0)
+    assert not _tied(11, 51, edges, travelled, 1.0)
+    assert _tied(10, 50, edges, travelled, 0.0) and not _tied(10, 51, edges, travelled, 0.0)
+
+
+@pytest.mark.parametrize("overrides", [dict(loop_ties=-1.0), dict(loop_ties=math.inf), dict(loop_ties="5"),
+                                       dict(loop_ties=5.0, workers=1)])
+def test_loop_ties_options_are_checked(overrides):
+    with pytest.raises(InvalidOptionError):
+        SlamOptions(**overrides)
+
+
+def test_loop_ties_match_fewer_candidates_and_keep_the_targets(simulated, mapped):
+    """With ``loop_ties`` the run twice round the simulated building matches fewer loop-closure
+    candidates than the default run, counts those it leaves, and still meets the ATE targets
+    against the exact truth."""
+    tied = Slam(loop_ties=5.0).run(simulated.log)
+    assert tied.loops_tied > 0 and len(tied.loops) < len(mapped.loops), (tied.loops_tied, len(tied.loops))
+    assert mapped.loops_tied == 0
+    errors = trajectory_errors(tied.poses, simulated.truth)
+    odometry = trajectory_errors(simulated.log.poses, simulated.truth)
+    assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0 and errors["ate_m"] * 10 <= odometry["ate_m"], errors
