@@ -223,12 +223,16 @@ def main():
     parser.add_argument("--jitter", type=int, default=0, metavar="N",
                         help="N more runs per log with the odometry moved by about 1e-6 (seeded): the spread")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                        help="a SlamOptions field other than the default (a Python literal), e.g. target_refresh=5")
+                        help="a SlamOptions field other than the default (a Python literal, or a word taken as a "
+                             "string), e.g. target_refresh=5, solver=isam2")
     args = parser.parse_args()
     options = {}
     for item in args.set:
         name, _, value = item.partition("=")
-        options[name] = ast.literal_eval(value)
+        try:
+            options[name] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            options[name] = value
     from taichi_match.reproduce import git_revision
 
     started = time.perf_counter()

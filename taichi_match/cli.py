@@ -403,7 +403,8 @@ def _slam(args):
                                                ("share_coarse", args.share_coarse or None),
                                                ("crop_target", args.crop_target or None),
                                                ("loop_search", args.loop_search), ("workers", args.workers),
-                                               ("loop_ties", None if args.loop_ties == "off" else args.loop_ties))
+                                               ("loop_ties", None if args.loop_ties == "off" else args.loop_ties),
+                                               ("solver", args.solver))
                              if v is not None})
     if args.loop_ties == "off":
         options = dataclasses.replace(options, loop_ties=None)
@@ -646,6 +647,9 @@ def main(argv=None):
     slam.add_argument("--loop-ties", type=_metres_or_off, metavar="METRES",
                       help="skip loop-closure candidates that closures already in the graph tie within this many "
                            "metres of travel, or 'off' (see SlamOptions.loop_ties)")
+    slam.add_argument("--solver", choices=("batch", "isam2"),
+                      help="the pose graph's optimisation after each submap: batch Levenberg-Marquardt (default) or "
+                           "incremental iSAM2, for long runs (see SlamOptions.solver)")
     slam.add_argument("--submap-frames", action="store_true",
                       help="give each submap its own node in the pose graph (see SlamOptions.submap_frames)")
     slam.add_argument("--share-coarse", action="store_true",

@@ -59,11 +59,12 @@ accepted closures 1.2-2 m off that agreed with each other and derailed a run (AT
 the vote 0.23 m, and every other run of bench/SLAM.md unchanged. Every match's edge
 (scan-to-submap and loop closure) is under a Cauchy kernel, against the wrong matches that still
 get through (a scan turning a corner can slide several degrees on the junction's few walls). The
-graph is optimised (Levenberg-Marquardt) each time a submap is complete, and once more at the
-end; the estimates are replaced. A new submap's candidates are all chosen (and cast again) first,
-then matched, this process taking them from the front while helper processes (``workers``,
-``_helper``) take them from the end, then judged in order: the same results as matching them one
-by one here, bit for bit.
+graph is optimised (Levenberg-Marquardt, or with ``solver`` "isam2" incrementally) each time a
+submap is complete, and once more at the end (Levenberg-Marquardt); the estimates are replaced. A
+new submap's candidates are all chosen (and cast again) first, then matched, this process taking
+them from the front while helper processes (``workers``, ``_helper``) take them from the end,
+then judged in order: the same results as matching them one by one here, bit for bit. With
+``loop_ties`` each is decided and matched in turn instead.
 
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
 poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
@@ -77,6 +78,8 @@ from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
+from scipy import sparse
+from scipy.sparse import csgraph
 
 from ._errors import InvalidOptionError, shown
 from ._grid import cells
@@ -137,6 +140,15 @@ LOOP_SEARCH_MAX = 2.5
 CROP_METRES = 1.0
 CROP_RADIANS = 0.05
 MAX_WORKERS = 64
+SOLVERS = ("batch", "isam2")
+# iSAM2 (``solver``): a node's linearisation point is renewed when its estimate moves by more than
+# this (gtsam's default 0.1 is for metres and radians alike: loop closures here move nodes by
+# centimetres), and each update is this many Gauss-Newton steps
+ISAM_RELINEARIZE = 0.01
+# ``loop_ties``: this many candidates of a new submap are matched, tied or not, before tied ones are
+# left (with none, tied frames left aces too few closures: 3 runs in 5 derailed, 1.4-2.9 m)
+LOOP_TIE_FREE = 6
+ISAM_STEPS = 2
 
 
 def scan_accepted(result) -> bool:
@@ -197,21 +209,24 @@ class SlamOptions:
         when an accepted closure moved beyond the basin does not save aces (0.26 and 1.69 m).
         With runner-ups proven down to 0.75 (bench/SLAM_loop_search_2026-12-03.md, one run per
         log): belgioioso and fhw still worse, loop closing still 2-4x.
-    loop_ties : for long runs: a candidate is not matched when the loop closures already in the
-        graph (those of this submap judged before it included) tie its two frames within this
-        many metres of travel: one closure, or two in a row, whose ends lie that far in all from
-        the frames and from each other (``_tied``). Revisits then cost a few matches each, not one
-        per earlier pass: round the simulated ring 6 times (600 scans), 3453 candidates -> 827, loop
-        closing 41.6 -> 9.7 ms per scan, the whole loop 60.6 -> 24.6, ATE 0.013 -> 0.016 m, loop
-        closures wrong against the truth 189 -> 26 (3 laps: 28.9 -> 16.3 ms per scan; one process,
-        one after the other, 2026-12-03). None (the default): every candidate
-        is matched. With 5 over five runs per log (2026-12-03, bench/SLAM_loop_ties.md against
-        the same revision without): 0.2-0.8 times as many candidates matched (belgioioso 298 -> 66,
-        fhw 775 -> 538, first runs), loop closures wrong
-        against the references fewer on every log (fhw 91 -> 40, belgioioso 26 -> 3, median), the
-        median ATE lower on csail, edmonton (0.181 -> 0.121 m) and orebro (0.137 -> 0.101) but
-        higher on the six others (aces 0.123 -> 0.154, fhw 0.133 -> 0.143, the simulated run 0.015
-        -> 0.017): a closure that closures already imply still averages their errors down.
+    loop_ties : for long runs: once ``LOOP_TIE_FREE`` candidates of a new submap have been
+        matched, a further one is not when the loop closures already in the graph (those judged
+        just before it included) tie its two frames within this many metres: the travel along the
+        trajectory on the shortest way between them that may cross closures (``tie_distances``).
+        Revisits then cost a few matches each, not one per earlier pass. Round the simulated ring
+        12 times (1200 scans) with 5: candidates matched 16915 -> 1345, loop closing 141 -> 12.9
+        ms a scan, ATE 0.011 -> 0.018 m (with ``solver`` "isam2" too, 29.4 ms a scan against 173);
+        6 times: 3453 -> 611. None (the default): every candidate is matched. On the shared logs
+        (bench/SLAM_loop_ties.md, five runs per log, 2026-12-03) it matches 0.6-0.9 times as many
+        and leaves fewer closures wrong against the references, but the median ATE rises on seven
+        of nine (aces 0.123 -> 0.176 m, fhw 0.133 -> 0.158, one fhw run in five at 0.97): a
+        closure that others imply still averages their errors down, and these logs are short.
+    solver : the pose graph's optimisation after each submap: "batch" (Levenberg-Marquardt over
+        the whole graph, whose cost grows with it) or "isam2" (gtsam's incremental smoother given
+        the new factors and nodes); the final optimisation is Levenberg-Marquardt either way. With
+        "isam2" (bench/SLAM_isam2.md, five runs per log, 2026-12-03) the optimisation took 0.3-0.5
+        times as long, and the median ATE fell on five logs and rose on three (fhw 0.133 -> 0.149 m,
+        orebro 0.137 -> 0.149, an orebro run in five at 0.39): not yet the default.
     workers : helper processes that match a share of the loop-closure candidates while this one
         matches the others (``_helper``): the same results bit for bit. Not the default: on this
         2-core machine (2026-12-03, two runs each way per log, alternating) one helper at the
@@ -247,6 +262,7 @@ class SlamOptions:
     loop_growth: float = 0.1
     loop_search: Optional[float] = None
     loop_ties: Optional[float] = None
+    solver: str = "batch"
     workers: int = 0
     robust_kernel: float = 1.5
     loop_consistency: bool = True
@@ -288,6 +304,8 @@ class SlamOptions:
         if self.loop_ties is not None and not (isinstance(self.loop_ties, (int, float))
                                                and math.isfinite(self.loop_ties) and self.loop_ties >= 0):
             raise InvalidOptionError(f"loop_ties must be None or a finite number >= 0; got {shown(self.loop_ties)}")
+        if self.solver not in SOLVERS:
+            raise InvalidOptionError(f"solver must be one of {SOLVERS}; got {shown(self.solver)}")
         if self.loop_ties is not None and self.workers:
             raise InvalidOptionError("loop_ties decides each candidate on the closures judged before it: it needs "
                                      "workers 0")
@@ -498,6 +516,7 @@ class Slam:
         graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*est[0]), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))))
         values.insert(0, gtsam.Pose2(*est[0]))
         keys = [0]
+        solver = _Solver(gtsam, opts.solver)
         travelled = np.zeros(n + frames)        # odometry path length up to each scan (a frame: its first scan's)
         submaps, done = [], []
         self._open_submap(gtsam, graph, values, keys, submaps, done, 0, n, est, travelled)
@@ -579,7 +598,7 @@ class Slam:
                 done.append(finished)
                 t1 = time.perf_counter()
                 seconds["loop closing"] += t1 - t0
-                est[keys] = _optimise(gtsam, graph, values, keys)
+                est[keys] = solver.optimise(graph, values, est, keys)
                 target_cast = None                       # cast again at the new estimates
                 self._counts = {}
                 castable[:k + 1] = usable[:k + 1]        # the graph has placed every scan so far
@@ -683,17 +702,21 @@ class Slam:
                 window = (min(drift, LOOP_SEARCH_MAX), min(drift, LOOP_SEARCH_MAX) / LOOP_SEARCH_ARM)
             candidates.append((other, guess, window))
         results, helped = (None, set()) if opts.loop_ties is not None else self._match_candidates(submap, candidates)
+        apart, matched = None, 0                         # loop_ties: tie_distances to the candidates
         for index, (other, guess, window) in enumerate(candidates):
             a, b = other.key, submap.key
             if results is not None:
                 res = results[index]
-            elif _tied(a, b, edges, travelled, opts.loop_ties):
-                self._tied += 1
-                continue
             else:
+                if apart is None and matched >= LOOP_TIE_FREE:
+                    apart = tie_distances(b, [c[0].key for c in candidates], edges, travelled)
+                if matched >= LOOP_TIE_FREE and apart[index] <= opts.loop_ties:
+                    self._tied += 1
+                    continue
                 if self._moved_since_cast(other, est):
                     self._cast_final(log, other, est)
                 res = self._matcher.match(other.final_grid, submap.final_grid, guess, search_window=window)
+                matched += 1
             loop = {"helper": index in helped, "window": window, "hypotheses": res.hypotheses,
                     "submaps": (other.index, submap.index),
                     "frames": (a, b), "anchors": (other.anchor, submap.anchor),
@@ -708,6 +731,7 @@ class Slam:
                 loop["edge"] = disagree <= agree
             if loop["edge"]:
                 edges.append(loop)
+                apart = None
                 cov = _tangent_covariance(res.pose, res.calibrated_covariance)
                 graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return out
@@ -753,23 +777,26 @@ class Slam:
                 collected(True)
         return results, helped
 
-def _tied(a, b, edges, travelled, reach: float) -> bool:
-    """Whether the loop closures in the graph (``edges``) already tie frames ``a`` and ``b`` within
-    ``reach`` metres of travel (``loop_ties``): one closure, or two in a row, whose ends lie that
-    many metres of travel in all from ``a``, from each other and from ``b``."""
-    if not edges:
-        return False
-    ends = travelled[np.array([e["frames"] for e in edges])]           # (E, 2) metres of travel
-    near, far = np.concatenate([ends[:, 0], ends[:, 1]]), np.concatenate([ends[:, 1], ends[:, 0]])
-
-    def across(t):                  # (the far ends of closures from near travel t, the gap to t)
-        gap = np.abs(near - t)
-        return far[gap <= reach], gap[gap <= reach]
-
-    (from_a, gap_a), (from_b, gap_b) = across(travelled[a]), across(travelled[b])
-    if np.any(gap_a + np.abs(from_a - travelled[b]) <= reach):
-        return True
-    return bool(np.any(gap_a[:, None] + np.abs(from_a[:, None] - from_b[None, :]) + gap_b[None, :] <= reach))
+def tie_distances(source, targets, edges, travelled, crossing: float = 0.0) -> np.ndarray:
+    """Metres of travel from frame ``source`` to each frame of ``targets`` (keys) along the
+    trajectory and across the loop closures in ``edges``, each crossed counting ``crossing``
+    metres: how far apart the graph's closures leave two frames (``loop_ties``). The trajectory
+    between two frames is a chain of the frames between them in travel order."""
+    ends = np.array([e["frames"] for e in edges], dtype=np.int64).reshape(-1, 2)
+    keys = np.concatenate([[source], np.asarray(targets, dtype=np.int64), ends.ravel()])
+    t = travelled[keys]
+    order = np.argsort(t, kind="stable")
+    first = 1 + len(targets) + 2 * np.arange(len(ends))                  # each closure's first end
+    # along the trajectory between neighbours in travel order, across each closure; every weight
+    # raised by a femtometre so that a zero (two frames at one place) stays an edge
+    rows = np.concatenate([order[:-1], first])
+    cols = np.concatenate([order[1:], first + 1])
+    weights = np.concatenate([np.diff(t[order]), np.full(len(ends), float(crossing))]) + 1e-15
+    lightest = np.argsort(weights, kind="stable")                         # of two edges between a pair
+    pairs = np.sort(np.column_stack([rows, cols])[lightest], axis=1)
+    pairs, index = np.unique(pairs, axis=0, return_index=True)            # the lightest is first
+    graph = sparse.csr_matrix((weights[lightest][index], (pairs[:, 0], pairs[:, 1])), shape=(len(keys), len(keys)))
+    return csgraph.dijkstra(graph, directed=False, indices=0)[1:1 + len(targets)]
 
 
 def footprint_bounds(grid, pose, metres: float = CROP_METRES, radians: float = CROP_RADIANS):
@@ -812,12 +839,45 @@ def _sd(covariance):
     return math.sqrt(max(np.linalg.eigvalsh(c[:2, :2]).max(), 0.0)), math.sqrt(max(c[2, 2], 0.0))
 
 
+class _Solver:
+    """The pose graph's optimisation after each submap (``SlamOptions.solver``): Levenberg-Marquardt
+    over the whole graph from ``values``, or iSAM2 given the factors and nodes added since its
+    last update (from their current estimates) and relinearising where the estimates moved."""
+
+    def __init__(self, gtsam, kind: str):
+        self._gtsam = gtsam
+        self._isam = None
+        if kind == "isam2":
+            params = gtsam.ISAM2Params()
+            params.setRelinearizeThreshold(ISAM_RELINEARIZE)
+            params.relinearizeSkip = 1
+            self._isam = gtsam.ISAM2(params)
+        self._factors = self._nodes = 0                  # how many the solver has been given
+
+    def optimise(self, graph, values, est, keys) -> np.ndarray:
+        """(len(keys), 3) the poses of ``keys`` after this update."""
+        gtsam = self._gtsam
+        if self._isam is None:
+            return _optimise(gtsam, graph, values, keys)
+        new = gtsam.NonlinearFactorGraph()
+        for i in range(self._factors, graph.size()):
+            new.add(graph.at(i))
+        self._isam.update(new, _values(gtsam, est, keys[self._nodes:]))
+        for _ in range(ISAM_STEPS - 1):
+            self._isam.update()
+        self._factors, self._nodes = graph.size(), len(keys)
+        return _poses(self._isam.calculateEstimate(), keys)
+
+
+def _poses(result, keys) -> np.ndarray:
+    return np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()] for k in keys])
+
+
 def _optimise(gtsam, graph, values, keys):
     """The graph optimised from ``values``: (len(keys), 3) poses of ``keys``."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
-    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-    return np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()] for k in keys])
+    return _poses(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
 
 OUTPUTS = ("trajectory.tum", "map.yaml", "map.pgm", "graph.g2o", "report.md")
 

@@ -279,7 +279,8 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
 @pytest.mark.parametrize("flag, field, values", [("--share-coarse", "share_coarse", (True, False)),
                                                  ("--crop-target", "crop_target", (True, False)),
                                                  ("--workers", "workers", (1, 0)),
-                                                 ("--loop-ties", "loop_ties", (5.0, None))])
+                                                 ("--loop-ties", "loop_ties", (5.0, None)),
+                                                 ("--solver", "solver", ("isam2", "batch"))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is off without them."""
@@ -289,7 +290,7 @@ def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field,
     for args, value in ((flags, values[0]), ([], values[1])):
         out = tmp_path / f"out{value}"
         assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
-        assert f"{field}={value}" in (out / "report.md").read_text()
+        assert f"{field}={value!r}" in (out / "report.md").read_text()
 
 
 def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(short_run, tmp_path, monkeypatch,
@@ -685,24 +686,48 @@ def test_loop_search_searches_candidates_beyond_the_basin(simulated):
 
 
 def test_loop_ties_by_hand():
-    """Frames at 0-100 m of travel (key = metres): closures 10-50 and 52-90 tie 11-51 (one closure,
-    1 + 1 m of travel from its ends) and 10-90 (two, 2 m apart), within 2 m in all; not 9-89 (1 + 2
-    + 1 m), 30-70, nor 11-51 within 1 m."""
-    from taichi_match.slam import _tied
+    """Frames at 0-100 m of travel (key = metres), closures 10-50, 52-90 and 91-30: from 51 to 11,
+    1 + 1 m through one closure; 90 to 10, 2 m through two; 31 to 11, 1 + 1 + 2 + 1 m through
+    three; 70 to 30, 18 + 1 m through two (not the 40 m along the trajectory); without closures,
+    the travel between them."""
+    from taichi_match.slam import tie_distances
 
     travelled = np.arange(101.0)
-    edges = [{"frames": (10, 50)}, {"frames": (52, 90)}]
-    assert not _tied(11, 51, [], travelled, 2.0)
-    assert _tied(11, 51, edges, travelled, 2.0) and _tied(51, 11, edges, travelled, 2.0)
-    assert _tied(10, 90, edges, travelled, 2.0) and not _tied(10, 90, edges, travelled, 1.9)
-    assert not _tied(9, 89, edges, travelled, 3.9) and _tied(9, 89, edges, travelled, 4.0)
-    assert not _tied(30, 70, edges, travelled, 2.0)
-    assert not _tied(11, 51, edges, travelled, 1.0)
-    assert _tied(10, 50, edges, travelled, 0.0) and not _tied(10, 51, edges, travelled, 0.0)
+    edges = [{"frames": (10, 50)}, {"frames": (52, 90)}, {"frames": (91, 30)}]
+    assert tie_distances(51, [11, 90, 100], [], travelled, 0.0) == pytest.approx([40.0, 39.0, 49.0])
+    assert tie_distances(51, [11], edges, travelled, 0.0) == pytest.approx([2.0])
+    assert tie_distances(90, [10], edges, travelled, 0.0) == pytest.approx([2.0])
+    assert tie_distances(31, [11, 50], edges, travelled, 0.0) == pytest.approx([5.0, 4.0])
+    assert tie_distances(70, [30], edges, travelled, 0.0) == pytest.approx([19.0])     # 70 -> 52 | 90 -> 91 | 30
+    assert tie_distances(31, [11], edges, travelled, 2.0) == pytest.approx([11.0])     # three crossings at 2 m
+    assert tie_distances(70, [30], edges, travelled, 25.0) == pytest.approx([40.0])    # along the trajectory
+
+
+def test_loop_ties_against_all_pairs_shortest_paths():
+    """tie_distances against a plain oracle on random closures: every pair of frames joined by the
+    travel between them, each closure by its crossing's 0.5 m, all shortest paths at once (Floyd-Warshall, dense)."""
+    from taichi_match.slam import tie_distances
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        travelled = np.sort(rng.uniform(0, 60, 40))
+        pairs = rng.choice(40, size=(int(rng.integers(0, 12)), 2))
+        edges = [{"frames": (int(a), int(b))} for a, b in pairs if a != b]
+        dense = np.abs(travelled[:, None] - travelled[None, :])
+        for e in edges:
+            dense[e["frames"]] = dense[e["frames"][::-1]] = min(dense[e["frames"]], 0.5)
+        oracle = np.full((40, 40), np.inf)
+        np.fill_diagonal(oracle, 0.0)
+        oracle = np.minimum(oracle, dense)
+        for k in range(40):
+            oracle = np.minimum(oracle, oracle[:, k:k + 1] + oracle[k:k + 1, :])
+        source = int(rng.integers(40))
+        targets = rng.choice(40, 6, replace=False)
+        assert tie_distances(source, targets, edges, travelled, 0.5) == pytest.approx(oracle[source, targets], abs=1e-9)
 
 
 @pytest.mark.parametrize("overrides", [dict(loop_ties=-1.0), dict(loop_ties=math.inf), dict(loop_ties="5"),
-                                       dict(loop_ties=5.0, workers=1)])
+                                       dict(loop_ties=5.0, workers=1), dict(solver="lm"), dict(solver=None)])
 def test_loop_ties_options_are_checked(overrides):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**overrides)
@@ -716,5 +741,14 @@ def test_loop_ties_match_fewer_candidates_and_keep_the_targets(simulated, mapped
     assert tied.loops_tied > 0 and len(tied.loops) < len(mapped.loops), (tied.loops_tied, len(tied.loops))
     assert mapped.loops_tied == 0
     errors = trajectory_errors(tied.poses, simulated.truth)
+    odometry = trajectory_errors(simulated.log.poses, simulated.truth)
+    assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0 and errors["ate_m"] * 10 <= odometry["ate_m"], errors
+
+
+def test_isam2_solver_meets_the_targets(simulated):
+    """With the incremental solver the run twice round the simulated building still meets the
+    ATE targets against the exact truth and beats the odometry tenfold."""
+    result = Slam(solver="isam2").run(simulated.log)
+    errors = trajectory_errors(result.poses, simulated.truth)
     odometry = trajectory_errors(simulated.log.poses, simulated.truth)
     assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0 and errors["ate_m"] * 10 <= odometry["ate_m"], errors
