@@ -31,6 +31,8 @@ FLASER lines), then against ``NAME.reference.tum``:
     python bench/slam.py --simulated --logs                # only the simulated run
     python bench/slam.py --logs orebro csail --jitter 2     # the spread over three runs per log
     python bench/slam.py --set target_refresh=5            # options other than the defaults
+    python bench/slam.py --simulated --logs --laps 12 --set loop_ties=5 --set solver=isam2
+                                                           # a long run: the simulated ring 12 times round
 """
 
 import argparse
@@ -218,6 +220,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--logs", nargs="*", help="log names (default: all in ../shared/logs)")
     parser.add_argument("--simulated", action="store_true", help="also the simulated run (taichi_match.simulate)")
+    parser.add_argument("--laps", type=float, default=2.0, help="times round the simulated ring (default 2)")
     parser.add_argument("--out", help="also write the table (markdown) here")
     parser.add_argument("--plots", help="folder for one picture per log")
     parser.add_argument("--jitter", type=int, default=0, metavar="N",
@@ -247,7 +250,7 @@ def main():
     if args.simulated:
         from taichi_match.simulate import simulate_log
 
-        run = simulate_log(0)
+        run = simulate_log(0, laps=args.laps)
         rows.append(run_one("simulated", run.log, run.truth, args.plots, options))
         jitter_runs("simulated", run.log, run.truth)
     if args.logs != []:

@@ -215,7 +215,8 @@ class SlamOptions:
         trajectory on the shortest way between them that may cross closures (``tie_distances``).
         Revisits then cost a few matches each, not one per earlier pass. Round the simulated ring
         12 times (1200 scans) with 5: candidates matched 16915 -> 1345, loop closing 141 -> 12.9
-        ms a scan, ATE 0.011 -> 0.018 m (with ``solver`` "isam2" too, 29.4 ms a scan against 173);
+        ms a scan, ATE 0.011 -> 0.018 m (with ``solver`` "isam2" too, 31 ms a scan against 162:
+        bench/SLAM_long_run.md);
         6 times: 3453 -> 611. None (the default): every candidate is matched. On the shared logs
         (bench/SLAM_loop_ties.md, five runs per log, 2026-12-03) it matches 0.6-0.9 times as many
         and leaves fewer closures wrong against the references, but the median ATE rises on seven
