@@ -471,7 +471,12 @@ def _demo_slam(args):
 
 def _metres_or_off(text: str):
     """A number of metres, or "off"."""
-    return "off" if text.strip().lower() == "off" else float(text)
+    if text.strip().lower() == "off":
+        return "off"
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of metres or 'off', got {text!r}") from None
 
 
 def _progress(label, total, enabled, unit="scan"):

@@ -287,8 +287,9 @@ def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field,
     log_path = tmp_path / "run.log"
     write_carmen(log_path, short_run.log)
     flags = [flag] if values[0] is True else [flag, str(values[0])]
-    for args, value in ((flags, values[0]), ([], values[1])):
-        out = tmp_path / f"out{value}"
+    runs = [(flags, values[0]), ([], values[1])] + ([([flag, "off"], None)] if flag == "--loop-ties" else [])
+    for k, (args, value) in enumerate(runs):
+        out = tmp_path / f"out{k}"
         assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
         assert f"{field}={value!r}" in (out / "report.md").read_text()
 
@@ -570,9 +571,10 @@ def test_cli_reference_must_match_the_scans(short_run, tmp_path, capsys):
     assert "timestamps" in capsys.readouterr().err and not (tmp_path / "o" / "trajectory.tum").exists()
 
 
-def test_cli_argument_errors_are_one_line(capsys):
+@pytest.mark.parametrize("bad", [["--submap-scans", "1e9"], ["--loop-ties", "abc"], ["--solver", "lm"]])
+def test_cli_argument_errors_are_one_line(capsys, bad):
     with pytest.raises(SystemExit) as exit_info:
-        main(["slam", "x.log", "--out", "o", "--submap-scans", "1e9"])
+        main(["slam", "x.log", "--out", "o", *bad])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("taichi-match: error:") and err.count("\n") == 1
