@@ -143,12 +143,12 @@ MAX_WORKERS = 64
 SOLVERS = ("batch", "isam2")
 # iSAM2 (``solver``): a node's linearisation point is renewed when its estimate moves by more than
 # this (gtsam's default 0.1 is for metres and radians alike: loop closures here move nodes by
-# centimetres), and each update is this many Gauss-Newton steps
+# centimetres), and each update is this many Gauss-Newton steps (not tuned)
 ISAM_RELINEARIZE = 0.01
+ISAM_STEPS = 2
 # ``loop_ties``: this many candidates of a new submap are matched, tied or not, before tied ones are
 # left (with none, tied frames left aces too few closures: 3 runs in 5 derailed, 1.4-2.9 m)
 LOOP_TIE_FREE = 6
-ISAM_STEPS = 2
 
 
 def scan_accepted(result) -> bool:
@@ -214,10 +214,9 @@ class SlamOptions:
         just before it included) tie its two frames within this many metres: the travel along the
         trajectory on the shortest way between them that may cross closures (``tie_distances``).
         Revisits then cost a few matches each, not one per earlier pass. Round the simulated ring
-        12 times (1200 scans) with 5: candidates matched 16915 -> 1345, loop closing 141 -> 12.9
-        ms a scan, ATE 0.011 -> 0.018 m (with ``solver`` "isam2" too, 31 ms a scan against 162:
-        bench/SLAM_long_run.md);
-        6 times: 3453 -> 611. None (the default): every candidate is matched. On the shared logs
+        12 times (1200 scans) with 5 and ``solver`` "isam2": candidates matched 16915 -> 1342, loop
+        closing 133 -> 13.5 ms a scan, the whole loop 162 -> 31, ATE 0.011 -> 0.020 m
+        (bench/SLAM_long_run.md). None (the default): every candidate is matched. On the shared logs
         (bench/SLAM_loop_ties.md, five runs per log, 2026-12-03) it matches 0.6-0.9 times as many
         and leaves fewer closures wrong against the references, but the median ATE rises on seven
         of nine (aces 0.123 -> 0.176 m, fhw 0.133 -> 0.158, one fhw run in five at 0.97): a
@@ -778,11 +777,12 @@ class Slam:
                 collected(True)
         return results, helped
 
-def tie_distances(source, targets, edges, travelled, crossing: float = 0.0) -> np.ndarray:
+
+def tie_distances(source, targets, edges, travelled) -> np.ndarray:
     """Metres of travel from frame ``source`` to each frame of ``targets`` (keys) along the
-    trajectory and across the loop closures in ``edges``, each crossed counting ``crossing``
-    metres: how far apart the graph's closures leave two frames (``loop_ties``). The trajectory
-    between two frames is a chain of the frames between them in travel order."""
+    trajectory and across the loop closures in ``edges`` (crossing one costs nothing): how far
+    apart the graph's closures leave two frames (``loop_ties``). The trajectory between two frames
+    is a chain of the frames between them in travel order."""
     ends = np.array([e["frames"] for e in edges], dtype=np.int64).reshape(-1, 2)
     keys = np.concatenate([[source], np.asarray(targets, dtype=np.int64), ends.ravel()])
     t = travelled[keys]
@@ -792,7 +792,7 @@ def tie_distances(source, targets, edges, travelled, crossing: float = 0.0) -> n
     # raised by a femtometre so that a zero (two frames at one place) stays an edge
     rows = np.concatenate([order[:-1], first])
     cols = np.concatenate([order[1:], first + 1])
-    weights = np.concatenate([np.diff(t[order]), np.full(len(ends), float(crossing))]) + 1e-15
+    weights = np.concatenate([np.diff(t[order]), np.zeros(len(ends))]) + 1e-15
     lightest = np.argsort(weights, kind="stable")                         # of two edges between a pair
     pairs = np.sort(np.column_stack([rows, cols])[lightest], axis=1)
     pairs, index = np.unique(pairs, axis=0, return_index=True)            # the lightest is first

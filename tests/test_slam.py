@@ -696,18 +696,16 @@ def test_loop_ties_by_hand():
 
     travelled = np.arange(101.0)
     edges = [{"frames": (10, 50)}, {"frames": (52, 90)}, {"frames": (91, 30)}]
-    assert tie_distances(51, [11, 90, 100], [], travelled, 0.0) == pytest.approx([40.0, 39.0, 49.0])
-    assert tie_distances(51, [11], edges, travelled, 0.0) == pytest.approx([2.0])
-    assert tie_distances(90, [10], edges, travelled, 0.0) == pytest.approx([2.0])
-    assert tie_distances(31, [11, 50], edges, travelled, 0.0) == pytest.approx([5.0, 4.0])
-    assert tie_distances(70, [30], edges, travelled, 0.0) == pytest.approx([19.0])     # 70 -> 52 | 90 -> 91 | 30
-    assert tie_distances(31, [11], edges, travelled, 2.0) == pytest.approx([11.0])     # three crossings at 2 m
-    assert tie_distances(70, [30], edges, travelled, 25.0) == pytest.approx([40.0])    # along the trajectory
+    assert tie_distances(51, [11, 90, 100], [], travelled) == pytest.approx([40.0, 39.0, 49.0])
+    assert tie_distances(51, [11], edges, travelled) == pytest.approx([2.0])
+    assert tie_distances(90, [10], edges, travelled) == pytest.approx([2.0])
+    assert tie_distances(31, [11, 50], edges, travelled) == pytest.approx([5.0, 4.0])
+    assert tie_distances(70, [30], edges, travelled) == pytest.approx([19.0])     # 70 -> 52 | 90 -> 91 | 30
 
 
 def test_loop_ties_against_all_pairs_shortest_paths():
     """tie_distances against a plain oracle on random closures: every pair of frames joined by the
-    travel between them, each closure by its crossing's 0.5 m, all shortest paths at once (Floyd-Warshall, dense)."""
+    travel between them, each closure by 0, all shortest paths at once (Floyd-Warshall, dense)."""
     from taichi_match.slam import tie_distances
 
     rng = np.random.default_rng(5)
@@ -717,7 +715,7 @@ def test_loop_ties_against_all_pairs_shortest_paths():
         edges = [{"frames": (int(a), int(b))} for a, b in pairs if a != b]
         dense = np.abs(travelled[:, None] - travelled[None, :])
         for e in edges:
-            dense[e["frames"]] = dense[e["frames"][::-1]] = min(dense[e["frames"]], 0.5)
+            dense[e["frames"]] = dense[e["frames"][::-1]] = 0.0
         oracle = np.full((40, 40), np.inf)
         np.fill_diagonal(oracle, 0.0)
         oracle = np.minimum(oracle, dense)
@@ -725,7 +723,7 @@ def test_loop_ties_against_all_pairs_shortest_paths():
             oracle = np.minimum(oracle, oracle[:, k:k + 1] + oracle[k:k + 1, :])
         source = int(rng.integers(40))
         targets = rng.choice(40, 6, replace=False)
-        assert tie_distances(source, targets, edges, travelled, 0.5) == pytest.approx(oracle[source, targets], abs=1e-9)
+        assert tie_distances(source, targets, edges, travelled) == pytest.approx(oracle[source, targets], abs=1e-9)
 
 
 @pytest.mark.parametrize("overrides", [dict(loop_ties=-1.0), dict(loop_ties=math.inf), dict(loop_ties="5"),
