@@ -148,7 +148,7 @@ ISAM_RELINEARIZE = 0.01
 ISAM_STEPS = 2
 # ``loop_ties``: this many candidates of a new submap are matched, tied or not, before tied ones are
 # left (with none, tied frames left aces too few closures: 3 runs in 5 derailed, 1.4-2.9 m)
-LOOP_TIE_FREE = 6
+LOOP_TIE_FREE = 10
 
 
 def scan_accepted(result) -> bool:
