@@ -147,7 +147,9 @@ SOLVERS = ("batch", "isam2")
 ISAM_RELINEARIZE = 0.01
 ISAM_STEPS = 2
 # ``loop_ties``: this many candidates of a new submap are matched, tied or not, before tied ones are
-# left (with none, tied frames left aces too few closures: 3 runs in 5 derailed, 1.4-2.9 m)
+# left (with none, tied frames left aces too few closures: 3 runs in 5 derailed, 1.4-2.9 m; with 6
+# the median ATE over five runs rose on seven shared logs of nine, aces 0.123 -> 0.176 m; with 10 on
+# two: bench/SLAM_loop_ties.md)
 LOOP_TIE_FREE = 10
 
 
@@ -214,13 +216,14 @@ class SlamOptions:
         just before it included) tie its two frames within this many metres: the travel along the
         trajectory on the shortest way between them that may cross closures (``tie_distances``).
         Revisits then cost a few matches each, not one per earlier pass. Round the simulated ring
-        12 times (1200 scans) with 5 and ``solver`` "isam2": candidates matched 16915 -> 1342, loop
-        closing 133 -> 13.5 ms a scan, the whole loop 162 -> 31, ATE 0.011 -> 0.020 m
-        (bench/SLAM_long_run.md). None (the default): every candidate is matched. On the shared logs
-        (bench/SLAM_loop_ties.md, five runs per log, 2026-12-03) it matches 0.6-0.9 times as many
-        and leaves fewer closures wrong against the references, but the median ATE rises on seven
-        of nine (aces 0.123 -> 0.176 m, fhw 0.133 -> 0.158, one fhw run in five at 0.97): a
-        closure that others imply still averages their errors down, and these logs are short.
+        12 times (1200 scans) with 5: candidates matched 16894 -> 2160, loop closing 68.8 -> 9.1
+        ms a scan, the whole loop 86 -> 22 (17 with ``solver`` "isam2"), ATE 0.012 -> 0.015 m
+        (bench/SLAM_long_run.md, 2026-12-04). None (the default): every candidate is matched. On
+        the shared logs (bench/SLAM_loop_ties.md, five runs per log) it matches 0.7-1.0 times as
+        many and leaves fewer closures wrong against the references; the median ATE rises on aces
+        (0.123 -> 0.134 m) and fhw (0.133 -> 0.152), falls on orebro (0.137 -> 0.121) and moves
+        by 0.002 m at most on the other six: a closure that others imply still averages their
+        errors down, and these logs are short.
     solver : the pose graph's optimisation after each submap: "batch" (Levenberg-Marquardt over
         the whole graph, whose cost grows with it) or "isam2" (gtsam's incremental smoother given
         the new factors and nodes); the final optimisation is Levenberg-Marquardt either way. With
