@@ -398,6 +398,7 @@ def _slam(args):
                              f"timestamps ({len(stamps)} poses for {len(log)} scans)")
     options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
                                                ("max_ray_length", args.max_ray),
+                                               ("free_margin", args.free_margin),
                                                ("target_refresh", args.target_refresh),
                                                ("submap_frames", args.submap_frames or None),
                                                ("share_coarse", args.share_coarse or None),
@@ -668,6 +669,8 @@ def main(argv=None):
                            "default 0, see SlamOptions.workers)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
     slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
+    slam.add_argument("--free-margin", type=float, metavar="M",
+                      help="the submaps' beams are free only up to M metres short of their returns (default 0.1)")
     slam.add_argument("--max-range", type=float, metavar="M",
                       help="a CARMEN log's sensor maximum: a reading at or above it is no return (default: the "
                            "largest reading that is the largest of two scans or more)")

@@ -194,6 +194,21 @@ class SlamOptions:
         rose on orebro (0.125 -> 0.140 m, max 0.163 -> 0.274) and fhw (0.132 -> 0.144) and fell on
         belgioioso (0.143 -> 0.133) (bench/SLAM_crop_target.md, 2026-12-03).
     max_ray_length : beams are cut there (metres) in submaps and scans.
+    free_margin : the submaps' and the final map's beams count as free only up to this many metres
+        short of their returns (``SensorModel.free_margin``; a lone scan's own grid is not cut). A
+        wall seen by several scans is a band of cells: the beams landing long clear the cells of
+        those landing short, the far side stays, and the submap's walls moved away from the
+        lasers that saw them. A lone scan matched against the 7 scans before it, all at the
+        reference poses and started there, came out ahead of the truth on every log (mean forward
+        error 3.6 mm on the simulated run, 6.6-19.7 on the real logs), with 0.1 by -0.9 and
+        0.5-10.8, the median errors the same or lower but on edmonton (+1.2 mm)
+        (bench/FRONT_END_BIAS.md), and the loop's trajectories over 10 scans had come out 0.1-0.6 %
+        too long against the references. Over five runs per log (bench/SLAM.md against
+        bench/SLAM_loop_ties.md's last section) the median ATE fell on eight of nine logs (aces
+        0.123 -> 0.078 m, no run derailed; belgioioso 0.145 -> 0.107, fhw 0.133 -> 0.103,
+        seattle 0.053 -> 0.041) and rose on csail (0.095 -> 0.106), the median RPE over 10 scans
+        fell on all nine; 0.15 did better on belgioioso and csail and worse on edmonton (0.181 ->
+        0.358) and orebro.
     odometry_sd : (metres per metre travelled, radians per radian turned, radians per metre,
         metres floor, radians floor): the standard deviations of an odometry step's translation
         (each axis) and rotation.
@@ -260,6 +275,7 @@ class SlamOptions:
     share_coarse: bool = False
     crop_target: bool = False
     max_ray_length: float = 20.0
+    free_margin: float = 0.1
     odometry_sd: tuple = (0.02, 0.02, math.radians(0.3), 0.005, math.radians(0.1))
     loop_radius: float = 3.0
     loop_growth: float = 0.1
@@ -297,10 +313,14 @@ class SlamOptions:
             raise InvalidOptionError(f"max_ray_length / resolution must be at least {MIN_CELLS_PER_RAY} (a ray "
                                      f"across at least that many cells, or a scan holds too few walls to match); got "
                                      f"{shown(self.max_ray_length)} m / {shown(self.resolution)} m")
-        for name in ("loop_radius", "loop_growth"):
+        for name in ("loop_radius", "loop_growth", "free_margin"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value >= 0):
                 raise InvalidOptionError(f"{name} must be a finite number >= 0; got {shown(value)}")
+        if self.free_margin >= self.max_ray_length:
+            raise InvalidOptionError(f"free_margin must be shorter than max_ray_length; got {shown(self.free_margin)} "
+                                     f"m and {shown(self.max_ray_length)} m")
         if not (isinstance(self.workers, int) and not isinstance(self.workers, bool)
                 and 0 <= self.workers <= MAX_WORKERS):
             raise InvalidOptionError(f"workers must be an integer in 0..{MAX_WORKERS}; got {shown(self.workers)}")
@@ -403,7 +423,8 @@ class Slam:
         self._matcher = Matcher(self.options.matcher)
         self._scan_matcher = Matcher(self.options.scan_matcher)
         self._scan_model = replace(SCAN_MODEL, max_ray_length=self.options.max_ray_length)
-        self._map_model = SensorModel(max_ray_length=self.options.max_ray_length)
+        self._map_model = SensorModel(max_ray_length=self.options.max_ray_length,
+                                      free_margin=self.options.free_margin)
         self._counts = {}
         self._helpers = []
 

@@ -587,3 +587,70 @@ def test_scans_to_grid_rejects_bad_arguments():
     nothing = Scan(0.0, np.full(181, np.nan), ANGLES, POSES[0], 30.0)
     with pytest.raises(InvalidOptionError, match="no usable beam"):
         scans_to_grid([nothing], POSES[:1])
+
+
+# --- free_margin: a return's beam free only up to that many metres short of it ----------------------
+
+def beam_scan(ranges, angle=0.0):
+    """A scan of one beam per range, all along ``angle`` (radians), sensor maximum 80 m."""
+    ranges = np.asarray(ranges, dtype=np.float64)
+    return Scan(0.0, ranges, np.full(len(ranges), angle), np.zeros(3), 80.0)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_free_margin_leaves_the_cells_before_a_return_unknown(engine):
+    # laser at (0.05, 0.05) on 0.1 m cells, one beam along +x to 1.0 m: its return in the cell of
+    # x 1.0-1.1. The cells it passes are free (x 0-1.0); with a margin of 0.23 m its free part ends
+    # at x 0.82, so the cell of x 0.9-1.0 is unknown, the one of x 0.8-0.9 still free
+    pose = np.array([[0.05, 0.05, 0.0]])
+    for margin, unknown_from in ((0.0, None), (0.23, 0.95), (0.5, 0.65)):
+        grid = scans_to_grid([beam_scan([1.0])], pose, resolution=0.1, model=SensorModel(free_margin=margin),
+                             engine=engine)
+        col = lambda x: int(np.floor((x - grid.corner_pose[0]) / 0.1))  # noqa: E731
+        row = int(np.floor((0.05 - grid.corner_pose[1]) / 0.1))
+        p = grid.prob[row]
+        assert p[col(1.05)] > 0.5                                       # the return
+        free = [x for x in np.arange(0.05, 1.0, 0.1) if unknown_from is None or x < unknown_from - 1e-9]
+        assert all(p[col(x)] < 0.5 for x in free), margin
+        if unknown_from is not None:
+            assert all(np.isnan(p[col(x)]) for x in np.arange(unknown_from, 1.0, 0.1)), margin
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_free_margin_keeps_a_short_return_of_another_scan(engine):
+    # two scans from one pose see a wall at 2.0 m and 2.1 m (range noise): without a margin the
+    # longer beam crosses the shorter one's cell, whose log-odds fall to hit + miss = 0.5 (p 0.62,
+    # not occupied at 0.65); with a margin of 0.16 m the longer beam is free up to x 1.99 and the
+    # cell stays a hit alone (0.9, p 0.71), so the wall keeps its near side
+    pose = np.array([[0.05, 0.05, 0.0]] * 2)
+    scans = [beam_scan([2.0]), beam_scan([2.1])]
+    model = SensorModel()
+    for margin, want in ((0.0, model.hit + model.miss), (0.16, model.hit)):
+        grid = scans_to_grid(scans, pose, resolution=0.1, model=SensorModel(free_margin=margin), engine=engine)
+        col = int(np.floor((2.05 - grid.corner_pose[0]) / 0.1))
+        row = int(np.floor((0.05 - grid.corner_pose[1]) / 0.1))
+        assert grid.prob[row, col] == pytest.approx(1.0 / (1.0 + np.exp(-want)), abs=1e-12)
+
+
+def test_free_margin_beams_shorter_than_it_are_their_hits_alone_and_engines_agree():
+    rng = np.random.default_rng(5)
+    scans = [Scan(0.0, rng.uniform(0.06, 6.0, 90), np.linspace(-np.pi / 2, np.pi / 2, 90), np.zeros(3), 80.0)
+             for _ in range(4)]
+    poses = np.column_stack([rng.uniform(-1, 1, 4), rng.uniform(-1, 1, 4), rng.uniform(-np.pi, np.pi, 4)])
+    model = SensorModel(free_margin=0.3)
+    a = scans_to_grid(scans, poses, model=model, engine="taichi")
+    assert same_grid(a, scans_to_grid(scans, poses, model=model, engine="numpy"))
+    # incremental counts give the same grid
+    counts = BeamCounts(model=model)
+    for scan, pose in zip(scans, poses):
+        counts.add([scan], pose[None])
+    assert same_grid(a, counts.grid())
+    # one beam of 0.2 m, shorter than the margin: its return only, no free cell
+    lone = scans_to_grid([beam_scan([0.2])], np.array([[0.025, 0.025, 0.0]]), model=model)
+    assert np.count_nonzero(np.isfinite(lone.prob)) == 1
+
+
+@pytest.mark.parametrize("value", [-0.1, float("nan"), float("inf"), "0.1"])
+def test_free_margin_must_be_a_finite_number_at_least_zero(value):
+    with pytest.raises(InvalidOptionError, match="free_margin"):
+        SensorModel(free_margin=value)
