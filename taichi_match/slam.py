@@ -8,12 +8,12 @@ is half full when the next one starts (as in Cartographer). Each scan is matched
 older of the two open submaps, which then holds at least half its scans: the scan as map B (its
 beams cast alone, with a decisive hit/miss model so that its rays are free and its returns
 walls), the submap as map A (its scans cast at their current estimates, in the submap's own
-frame), from the odometry's guess, with ``scan_matcher``'s options. Free space along the rays
-counts against the submap's walls: the matcher's negative information. A match that passes
-``scan_accepted`` and agrees with the odometry's prediction (a 99.9 % chi-square gate on the
-step's covariance plus the match's) gives the scan's pose and an edge from the submap's frame to
-the scan with the match's calibrated covariance; otherwise the scan keeps the odometry's
-prediction, and the open submaps
+frame, each beam free only up to ``free_margin`` short of its return), from the odometry's
+guess, with ``scan_matcher``'s options. Free space along the rays counts against the submap's
+walls: the matcher's negative information. A match that passes ``scan_accepted`` and agrees
+with the odometry's prediction (a 99.9 % chi-square gate on the step's covariance plus the
+match's) gives the scan's pose and an edge from the submap's frame to the scan with the match's
+calibrated covariance; otherwise the scan keeps the odometry's prediction, and the open submaps
 leave it out until the next optimisation has placed it: at a corner that prediction can be
 degrees off, and the scans matched against it inherited the error (traced on the simulated run;
 over three jittered runs each, the median ATE fell on the simulated run and 7 of the 8 logs,
