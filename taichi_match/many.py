@@ -12,7 +12,8 @@ of consecutive tasks dealt out in turn, ``BLOCK``), each with the maps it names,
 prepared once per chunk; a worker
 starts Taichi with the machine's cores shared among the workers (``_taichi.set_threads``).
 Each chunk costs a map's transfer and preparation per distinct map it names, so fewer, larger
-chunks suit tasks that share maps (an all-pairs check), more chunks balance unequal tasks.
+chunks suit tasks that share maps (an all-pairs check), more chunks balance unequal tasks and start
+the workers sooner; without ``chunk_size`` the call weighs the two (``_default_chunk_size``).
 A worker forked after Taichi started in the parent would hang; taichi_match detects it and the
 task fails with a clear ``EngineError`` instead.
 """
@@ -49,7 +50,8 @@ def match_many(tasks: Iterable[Task], options: Optional[MatchOptions] = None, *,
         Workers to spread the tasks over (processes started with "spawn", or Dask's
         ``Client.get_executor()``); None: in this process, one ``Matcher``.
     chunk_size : int, optional
-        Tasks per chunk sent to a worker; default: the tasks shared evenly, one chunk per worker.
+        Tasks per chunk sent to a worker; default: up to ``CHUNKS_PER_WORKER`` chunks per worker
+        while the maps the chunks send stay within ``MAX_RESENT`` of one chunk per worker's.
     errors : {"raise", "return"}
         A task whose input is bad (a ``TaichiMatchError``): raise it (after the running chunks
         end), or put the error in that task's place and go on.
@@ -129,7 +131,7 @@ def iter_matches(tasks: Iterable[Task], options: Optional[MatchOptions] = None, 
             yield index, _outcome(lambda a=a, b=b, guess=guess: matcher.match(a, b, guess), index, errors)
         return
     if chunk_size is None:
-        chunk_size = max(1, math.ceil(len(tasks) / _workers(executor)))
+        chunk_size = _default_chunk_size(tasks, _workers(executor))
     elif isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise InvalidOptionError(f"chunk_size must be a whole number >= 1; got {shown(chunk_size)}")
     threads = max(1, len(_allowed_cpus()) // _workers(executor))
@@ -178,6 +180,34 @@ def _outcome(run, index, errors):
 # and far-apart tasks often differ in cost (an all-pairs check's first and last rows: measured on
 # 1,225 pairs of 50 laser submaps on 2 workers, 1.31x the serial loop in two halves, 1.47x dealt out)
 BLOCK = 16
+
+
+# Without ``chunk_size``, each worker gets up to this many chunks: smaller chunks start the
+# workers sooner and even out their loads (a loop's 123 consecutive submap pairs, 2 workers: 1.49-1.51x
+# the serial loop in 2 chunks, 1.61-1.63x in 8), as long as the maps the chunks name, each sent
+# and prepared once per chunk, grow by at most MAX_RESENT over one chunk per worker (an all-pairs
+# check of 50 submaps, 1,225 pairs: 1.68-1.84x in 2 chunks, 1.51x in 4, 1.2x in 8; measured on
+# this 2-core machine, 2026-12-04, on bench/throughput.py's tasks, a warmed pool, two runs each).
+CHUNKS_PER_WORKER = 4
+MAX_RESENT = 0.1
+
+
+def _default_chunk_size(tasks, workers: int) -> int:
+    """The smallest chunk size that deals the tasks into at most ``CHUNKS_PER_WORKER`` chunks per
+    worker and whose chunks name, summed over chunks, at most ``1 + MAX_RESENT`` times the maps
+    that one chunk per worker names."""
+    def maps_sent(size):
+        return sum(len(_chunk([tasks[k] for k in indices])[0])
+                   for indices in _chunks(len(tasks), math.ceil(len(tasks) / size)))
+
+    best = max(1, math.ceil(len(tasks) / workers))
+    allowed = (1.0 + MAX_RESENT) * maps_sent(best)
+    for per_worker in range(2, CHUNKS_PER_WORKER + 1):
+        size = max(1, math.ceil(len(tasks) / (workers * per_worker)))
+        if maps_sent(size) > allowed:
+            break
+        best = size
+    return best
 
 
 def _chunks(count, chunks):

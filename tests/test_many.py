@@ -139,3 +139,20 @@ def test_chunks_deal_every_task_out_once(count, chunks):
     assert len(out) <= max(chunks, 1) and all(c for c in out)
     if count >= 2 * BLOCK * chunks:                       # blocks of BLOCK consecutive tasks
         assert out[0][:BLOCK] == list(range(BLOCK)) and out[1 % len(out)][0] == BLOCK
+
+
+def test_default_chunks_follow_how_tasks_share_maps():
+    from taichi_match.many import _default_chunk_size
+
+    maps = [tm.GridMap(np.zeros((4, 4)), 0.1) for _ in range(65)]
+    # a loop's consecutive pairs (m_i, m_i+1): one chunk per worker (2 chunks, blocks of 16 dealt
+    # in turn) names 34 + 34 = 68 maps; 8 chunks of 8 consecutive pairs name 8 x 9 = 72, within
+    # 10 % more: 8 tasks a chunk
+    consecutive = [(maps[i], maps[i + 1], None) for i in range(64)]
+    assert _default_chunk_size(consecutive, 2) == 8
+    # an all-pairs check of 10 maps (45 pairs): 2 chunks name 10 + 9 maps, 4 chunks 31: one chunk
+    # per worker
+    pairs = [(maps[i], maps[j], None) for i in range(10) for j in range(i + 1, 10)]
+    assert _default_chunk_size(pairs, 2) == 23
+    # one task: one chunk
+    assert _default_chunk_size(consecutive[:1], 4) == 1
