@@ -120,11 +120,11 @@ def _short_of_returns(starts, ends, hit, scan, margin: float):
     length = np.hypot(d[:, 0], d[:, 1])
     free = ~hit | (length > margin)
     share = np.where(hit, (length - margin) / np.where(length > 0.0, length, 1.0), 1.0)[free]
-    order = np.argsort(np.concatenate([scan[free], scan[hit]]), kind="stable")
-    new_starts = np.concatenate([starts[free], ends[hit]])[order]
-    new_ends = np.concatenate([starts[free] + d[free] * share[:, None], ends[hit]])[order]
-    new_hit = np.concatenate([np.zeros(int(free.sum()), dtype=bool), np.ones(int(hit.sum()), dtype=bool)])[order]
-    return new_starts, new_ends, new_hit, np.concatenate([scan[free], scan[hit]])[order]
+    owners = np.concatenate([scan[free], scan[hit]])
+    order = np.argsort(owners, kind="stable")
+    new_hit = np.arange(len(owners)) >= int(free.sum())          # the free rows first, then the hits
+    return (np.concatenate([starts[free], ends[hit]])[order],
+            np.concatenate([starts[free] + d[free] * share[:, None], ends[hit]])[order], new_hit[order], owners[order])
 
 
 def _cells_of_segment(u0, v0, u1, v1):
