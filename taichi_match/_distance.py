@@ -22,7 +22,7 @@ whatever the order of the parallel writes.
 
 import numpy as np
 
-from ._launch import launch
+from ._launch import launch, row_spread
 from ._taichi import kernel_lock, kernels, taichi
 
 __all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "far"]
@@ -96,17 +96,21 @@ def _build(ti):
         def stamp(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), starts: ti.types.ndarray(dtype=ti.i32, ndim=1),
                   ends: ti.types.ndarray(dtype=ti.i32, ndim=1), weights: ti.types.ndarray(dtype=ti.f64, ndim=1),
                   profile: ti.types.ndarray(dtype=ti.f64, ndim=1), first: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                  half: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(ndim=2), dt: ti.template()):
-            # a row of the output per work item (filled beforehand with the value beyond reach):
-            # the runs of walls within reach rows of it (runs sorted by row, ``first[r]`` the
-            # first on row r or later) each write the cells of that row within reach of the run,
-            # ``half[d + reach]`` cells beyond either end on row d away, their squared distance to
-            # the run's nearest wall (the least wins) or, weighted, weight * profile[that] (the
-            # largest wins); the row belongs to its work item, so no atomics, and the result does
-            # not depend on the order of the writes
+                  half: ti.types.ndarray(dtype=ti.i32, ndim=1), spread: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                  out: ti.types.ndarray(ndim=2), dt: ti.template()):
+            # a row of the output per work item (the rows spread out: ``_launch.row_spread``; the
+            # output filled beforehand with the value beyond reach): the runs of walls within
+            # reach rows of it (runs sorted by row, ``first[r]`` the first on row r or later) each
+            # write the cells of that row within reach of the run, ``half[d + reach]`` cells
+            # beyond either end on row d away, their squared distance to the run's nearest wall
+            # (the least wins) or, weighted, weight * profile[that] (the largest wins); the row
+            # belongs to its work item, so no atomics, and the result does not depend on the order
+            # of the writes
             h, w = out.shape[0], out.shape[1]
             reach = (half.shape[0] - 1) // 2
-            for i in range(h):
+            for i, s in ti.ndrange(h, spread.shape[0]):
+                if s != 0:
+                    continue
                 for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
                     di = rows_[k] - i
                     dy2 = di * di
@@ -218,7 +222,7 @@ def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
     out.fill(beyond)
     with kernel_lock():
         launch(kernels(_build)[kernel], (rows, starts, ends, weights, np.ascontiguousarray(profile, dtype=np.float64),
-                                         first, half, out), _taichi_type(dtype))
+                                         first, half, row_spread(shape[0]), out), _taichi_type(dtype))
     return out
 
 

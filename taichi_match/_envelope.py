@@ -47,7 +47,7 @@ from ._cost import AffineMap, pose_feature_pair
 from ._distance import near_weighted_envelope
 from ._grid import GridMap, cells
 from ._kernels import PAD
-from ._launch import Launcher, launch
+from ._launch import Launcher, launch, row_strips
 from ._se2 import as_poses, inverse, transform_points
 from ._taichi import kernel_lock, kernels
 
@@ -114,7 +114,8 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, *, s
             squared = near_weighted_envelope(*walls, (h, w), reach, profile[:-1], scratch=True)
         p = np.zeros((0, 0)) if prob is None else np.ascontiguousarray(prob, dtype=np.float64)
         launch(kernels(_build_conflict),
-               (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8), profile, out),
+               (p, np.ascontiguousarray(squared), np.ascontiguousarray(unknown).view(np.uint8), profile,
+                row_strips(*out.shape), out),
                (prob is not None, walls is None))
     return out
 
@@ -123,18 +124,24 @@ def _build_conflict(ti):
     @ti.kernel
     def conflict(prob: ti.types.ndarray(dtype=ti.f64, ndim=2), source: ti.types.ndarray(ndim=2),
                  unknown: ti.types.ndarray(dtype=ti.u8, ndim=2), profile: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                 out: ti.types.ndarray(dtype=ti.f32, ndim=2), grey: ti.template(), from_squared: ti.template()):
+                 strips: ti.types.ndarray(dtype=ti.i32, ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                 grey: ti.template(), from_squared: ti.template()):
         far = profile.shape[0] - 1
         h, w = source.shape[0], source.shape[1]
-        for i in range(out.shape[0]):                       # a row per work item, its cells in order
+        # a strip of a row per work item (``_launch.row_strips``, over the padded columns), its
+        # cells in order: the ring off the map, then the map's cells
+        for i, s in ti.ndrange(out.shape[0], strips.shape[0] - 1):
+            c0, c1 = strips[s], strips[s + 1]
             if i < PAD or i >= h + PAD:
-                for j in range(out.shape[1]):
+                for j in range(c0, c1):
                     out[i, j] = ti.f32(_OFF_MAP)
             else:
-                for j in range(PAD):
+                for j in range(c0, ti.min(c1, PAD)):
                     out[i, j] = ti.f32(_OFF_MAP)
-                    out[i, w + PAD + j] = ti.f32(_OFF_MAP)
-                for j in range(w):
+                for j in range(ti.max(c0, w + PAD), c1):
+                    out[i, j] = ti.f32(_OFF_MAP)
+                for jp in range(ti.max(c0, PAD), ti.min(c1, w + PAD)):
+                    j = jp - PAD
                     hi = ti.f64(0.0)
                     if ti.static(from_squared):
                         hi = profile[ti.min(ti.cast(source[i - PAD, j], ti.i64), far)]
@@ -144,7 +151,7 @@ def _build_conflict(ti):
                     if ti.static(grey):
                         hi = ti.select(known, ti.max(prob[i - PAD, j], hi), hi)
                     c = ti.cast(1.0 - hi, ti.f32)
-                    out[i, j + PAD] = ti.select(known, c, ti.f32(-1.0) - c)
+                    out[i, jp] = ti.select(known, c, ti.f32(-1.0) - c)
 
     return conflict
 
