@@ -45,46 +45,47 @@ def _build(ti):
 
     def lines_kernel(down):
         @ti.kernel
-        def lines(f: f64_2d, d: f64_2d, v: i32_2d, z: f64_2d):
-            # per line (a row, or a column: ``down``): the lower envelope of the parabolas
-            # (x - q)^2 + f(q) over its finite f(q), in v (their q) and z (where each takes over),
-            # then read off at every x
+        def lines(f: f64_2d, d: f64_2d, v: i32_2d, z: f64_2d, spread: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+            # per line (a row, or a column: ``down``; the lines spread out: ``_launch.row_spread``):
+            # the lower envelope of the parabolas (x - q)^2 + f(q) over its finite f(q), in v
+            # (their q) and z (where each takes over), then read off at every x
             n = f.shape[0] if ti.static(down) else f.shape[1]
-            for line in range(f.shape[1] if ti.static(down) else f.shape[0]):
-                k = -1
-                for q in range(n):
-                    fq = at(f, line, q, down)
-                    if fq < ti.math.inf:
-                        qf = ti.cast(q, ti.f64)
-                        s = ti.f64(-ti.math.inf)
-                        while k >= 0:
-                            p = v[line, k]
-                            pf = ti.cast(p, ti.f64)
-                            s = ((fq + qf * qf) - (at(f, line, p, down) + pf * pf)) / (2.0 * (qf - pf))
-                            if s > z[line, k]:
-                                break
-                            k -= 1
-                        k += 1
-                        v[line, k] = q
-                        z[line, k] = ti.select(k == 0, -ti.math.inf, s)
-                        z[line, k + 1] = ti.math.inf
-                if k < 0:
+            for line, part in ti.ndrange(f.shape[1] if ti.static(down) else f.shape[0], spread.shape[0]):
+                if part == 0:
+                    k = -1
                     for q in range(n):
-                        if ti.static(down):
-                            d[q, line] = ti.math.inf
-                        else:
-                            d[line, q] = ti.math.inf
-                else:
-                    j = 0
-                    for q in range(n):
-                        while z[line, j + 1] < q:
-                            j += 1
-                        p = v[line, j]
-                        dq = ti.cast(q - p, ti.f64)
-                        if ti.static(down):
-                            d[q, line] = dq * dq + at(f, line, p, down)
-                        else:
-                            d[line, q] = dq * dq + at(f, line, p, down)
+                        fq = at(f, line, q, down)
+                        if fq < ti.math.inf:
+                            qf = ti.cast(q, ti.f64)
+                            s = ti.f64(-ti.math.inf)
+                            while k >= 0:
+                                p = v[line, k]
+                                pf = ti.cast(p, ti.f64)
+                                s = ((fq + qf * qf) - (at(f, line, p, down) + pf * pf)) / (2.0 * (qf - pf))
+                                if s > z[line, k]:
+                                    break
+                                k -= 1
+                            k += 1
+                            v[line, k] = q
+                            z[line, k] = ti.select(k == 0, -ti.math.inf, s)
+                            z[line, k + 1] = ti.math.inf
+                    if k < 0:
+                        for q in range(n):
+                            if ti.static(down):
+                                d[q, line] = ti.math.inf
+                            else:
+                                d[line, q] = ti.math.inf
+                    else:
+                        j = 0
+                        for q in range(n):
+                            while z[line, j + 1] < q:
+                                j += 1
+                            p = v[line, j]
+                            dq = ti.cast(q - p, ti.f64)
+                            if ti.static(down):
+                                d[q, line] = dq * dq + at(f, line, p, down)
+                            else:
+                                d[line, q] = dq * dq + at(f, line, p, down)
 
         return lines
 
@@ -108,21 +109,20 @@ def _build(ti):
             # of the writes
             h, w = out.shape[0], out.shape[1]
             reach = (half.shape[0] - 1) // 2
-            for i, s in ti.ndrange(h, spread.shape[0]):
-                if s != 0:
-                    continue
-                for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
-                    di = rows_[k] - i
-                    dy2 = di * di
-                    chord = half[di + reach]
-                    a, b = starts[k], ends[k]
-                    for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
-                        dx = ti.max(ti.max(a - j, j - b), 0)
-                        q = dy2 + dx * dx
-                        if ti.static(weighted):
-                            out[i, j] = ti.max(out[i, j], weights[k] * profile[q])
-                        else:
-                            out[i, j] = ti.cast(ti.min(ti.cast(out[i, j], ti.i32), q), dt)
+            for i, part in ti.ndrange(h, spread.shape[0]):
+                if part == 0:
+                    for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
+                        di = rows_[k] - i
+                        dy2 = di * di
+                        chord = half[di + reach]
+                        a, b = starts[k], ends[k]
+                        for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
+                            dx = ti.max(ti.max(a - j, j - b), 0)
+                            q = dy2 + dx * dx
+                            if ti.static(weighted):
+                                out[i, j] = ti.max(out[i, j], weights[k] * profile[q])
+                            else:
+                                out[i, j] = ti.cast(ti.min(ti.cast(out[i, j], ti.i32), q), dt)
 
         return stamp
 
@@ -167,9 +167,10 @@ def squared_distance(f: np.ndarray) -> np.ndarray:
         # down the columns in place (a thread's columns are neighbours, whose rows share cache
         # lines: faster than transposing for a pass along rows), then along the rows
         g = _SCRATCH.get("g", (h, w), np.float64)
-        launch(columns, (f, g, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64)),
-               None)
-        launch(rows, (g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64)), None)
+        launch(columns, (f, g, _SCRATCH.get("v", (w, h + 1), np.int32), _SCRATCH.get("z", (w, h + 2), np.float64),
+                         row_spread(w)), None)
+        launch(rows, (g, d, _SCRATCH.get("v", (h, w + 1), np.int32), _SCRATCH.get("z", (h, w + 2), np.float64),
+                      row_spread(h)), None)
     return d
 
 

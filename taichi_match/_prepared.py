@@ -26,9 +26,12 @@ _UNKNOWN = np.float32(-1.0)
 
 # The envelope's walls' distances are stamped around each wall (``near_squared_distance``) while
 # walls x (2 reach + 1)^2 is at most this many times the map's cells: measured against the exact
-# transforms over every cell on laser submaps and the shared robot maps, every pyramid level, two
-# blurs: the stamps 2-3x faster up to 10, even at 25-30, 2-3x slower beyond 55
-STAMP_WORK = 25
+# transforms over every cell (2026-12-04, both spread over Taichi's threads: ``_launch.row_spread``),
+# a prepared level each, on the shared robot maps, laser submaps of three logs and gdc_3 tiled to
+# 4000 x 4000 cells: the finest levels (walls at 1, ratios 2-23) stamped 2.3-5.7x faster; the
+# coarser ones (grey walls) 1.0-2.2x faster up to 30, 0.84-1.55x (median 1.06) at 30-42, 0.67-1.16x
+# (median 0.83) beyond 45
+STAMP_WORK = 40
 
 
 class PreparedMap:
