@@ -7,7 +7,8 @@ For each log of ``../shared/logs``: submaps of 40 scans at 0.05 m cast at the re
 one every 20 scans (issue 14's measure: about 1000 x 1000 cells), then
 
 - **preparation**: a new map prepared as a match needs it (``Matcher.prepare``: its pyramid's
-  levels, the verdict's wall distances, its known rows): median ms per submap;
+  levels, the verdict's wall distances, its known rows): median ms per submap over ``REPEATS``
+  passes;
 - **prepared match**: consecutive submaps, both prepared before, matched from the reference's
   relative pose moved by (0.1 m, -0.1 m, 0.05 rad): median ms;
 - **new pairs per second**: the same pairs with neither prepared (a new matcher per pair: both
@@ -15,14 +16,16 @@ one every 20 scans (issue 14's measure: about 1000 x 1000 cells), then
 
 Then, every figure beside its target:
 
-- a 4000 x 4000 map (gdc_3 tiled) prepared: seconds, and the growth of the peak resident memory;
+- a 4000 x 4000 map (gdc_3 tiled) prepared, in a spawned process of its own: seconds (the median
+  of five new maps, and the first), and how much the peak resident memory grew for the first;
 - ``match_many`` against a serial loop of ``Matcher.match`` on the same tasks in the same run
   (every log's consecutive pairs, new maps: preparation included), in this process and on 1 and
   2 spawned worker processes (a pool started and warmed first, as a fleet keeps it; its start
-  reported apart), the poses compared;
+  reported apart), the poses compared; each way ``REPEATS`` times in turn, the medians;
 - an all-pairs candidate check: 50 submaps of one log (fhw, one every 9 scans), all 1,225 pairs
   from the reference's relative poses moved by the offset above, serially and on 2 workers: the
-  time, the pairs accepted and how many of those are right (within 0.1 m and 1 degree);
+  time (medians of ``REPEATS`` runs each way in turn), the pairs accepted and how many of those are
+  right (within 0.1 m and 1 degree);
 - resident memory over 10,000 matches with the maps replaced every 10 matches;
 - the paper's corridor: median full match (target 5 ms).
 """
@@ -48,6 +51,7 @@ import submaps  # noqa: E402
 from yardstick import corridor_median_ms  # noqa: E402
 
 SCANS, STRIDE = 40, 20
+REPEATS = 3                     # runs of each way in turn, for the medians of match_many's figures
 OFFSET = np.array([0.1, -0.1, 0.05])
 
 
@@ -73,11 +77,12 @@ def log_figures(name):
     truths = [tm.compose(tm.inverse(middles[k]), middles[k + 1]) for k in range(len(built) - 1)]
     matcher = tm.Matcher()
     prepare = []
-    for grid in built:
-        copy = grid.with_prob(grid.prob)                 # a map the matcher has not seen
-        t0 = time.perf_counter()
-        prepare_fully(matcher, copy)
-        prepare.append(time.perf_counter() - t0)
+    for _ in range(REPEATS):
+        for grid in built:
+            copy = grid.with_prob(grid.prob)             # a map the matcher has not seen
+            t0 = time.perf_counter()
+            prepare_fully(matcher, copy)
+            prepare.append(time.perf_counter() - t0)
     for grid in built:
         prepare_fully(matcher, grid)
     prepared = []
@@ -96,17 +101,31 @@ def log_figures(name):
             f"{1e3 * np.median(prepare):.1f} | {1e3 * np.median(prepared):.1f} | {rate:.0f} |")
 
 
-def large_map_figures(side=4000):
+def large_map_figures(side=4000, maps=5):
+    """A ``side`` x ``side`` map (gdc_3 tiled) prepared in a spawned process of its own, so that
+    its peak resident memory is the preparation's and not what this process held before: (the
+    first map's seconds, the median seconds of ``maps`` new maps, the peak resident memory's
+    growth over the first preparation in GB)."""
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(_large_map_figures, side, maps).result()
+
+
+def _large_map_figures(side, maps):
     gdc = real_maps.load_maps()["gdc_3"]
     reps = (-(-side // gdc.shape[0]), -(-side // gdc.shape[1]))
-    grid = tm.GridMap(np.tile(gdc.prob, reps)[:side, :side], gdc.resolution)
+    prob = np.tile(gdc.prob, reps)[:side, :side]
+    tm.Matcher().prepare(tm.GridMap(prob[:500, :500], gdc.resolution))      # compile the kernels
+    grids = [tm.GridMap(prob, gdc.resolution) for _ in range(maps)]       # each a map the matcher has not seen
     before = status_mb("VmHWM")
-    t0 = time.perf_counter()
-    prepared = prepare_fully(tm.Matcher(), grid)
-    seconds = time.perf_counter() - t0
-    grown = status_mb("VmHWM") - before
-    del prepared
-    return seconds, grown
+    seconds = []
+    for k, grid in enumerate(grids):
+        t0 = time.perf_counter()
+        prepared = prepare_fully(tm.Matcher(), grid)
+        seconds.append(time.perf_counter() - t0)
+        if k == 0:
+            grown = (status_mb("VmHWM") - before) / 1024.0
+        del prepared
+    return seconds[0], float(np.median(seconds)), grown
 
 
 def consecutive_tasks(name):
@@ -153,25 +172,36 @@ def spawn_pool(workers, tasks):
     return pool, start
 
 
-def many_figures(tasks):
-    """match_many against the serial loop on ``tasks``: rows of the table, the serial time. A
-    first serial run warms this process's memory (fresh memory's first touch is slow on some
-    machines: the first of identical runs took 2x here)."""
+def many_figures(tasks, repeats=REPEATS):
+    """match_many against the serial loop on ``tasks``, each ``repeats`` times in turn (the
+    machine's speed drifts from minute to minute): rows of the table with the median seconds,
+    the serial loop's median. A first serial run warms this process's memory (fresh memory's
+    first touch is slow on some machines: the first of identical runs took 2x here)."""
     serial_loop(fresh(tasks))
-    serial_s, reference = timed(serial_loop, tasks)
-    rows = [("serial loop of `Matcher.match`", serial_s, 0.0, "")]
-    seconds, results = timed(tm.match_many, tasks)
-    rows.append(("`match_many`, this process", seconds, worst_difference(results, reference), ""))
-    for workers in (1, 2):
-        pool, start = spawn_pool(workers, tasks)
-        with pool:
-            seconds, results = timed(lambda t: tm.match_many(t, executor=pool), tasks)
-        rows.append((f"`match_many`, {workers} spawned worker{'s' if workers > 1 else ''}", seconds,
-                     worst_difference(results, reference), f"pool start {start:.1f} s"))
-    return rows, serial_s
+    pools = {workers: spawn_pool(workers, tasks) for workers in (1, 2)}
+    runs = {"serial": serial_loop, "this process": tm.match_many,
+            1: lambda t: tm.match_many(t, executor=pools[1][0]), 2: lambda t: tm.match_many(t, executor=pools[2][0])}
+    seconds = {how: [] for how in runs}
+    reference, differences = None, {how: 0.0 for how in runs}
+    try:
+        for _ in range(repeats):
+            for how, run in runs.items():
+                sec, results = timed(run, tasks)
+                seconds[how].append(sec)
+                reference = reference or results
+                differences[how] = max(differences[how], worst_difference(results, reference))
+    finally:
+        for pool, _ in pools.values():
+            pool.shutdown()
+    median = {how: float(np.median(values)) for how, values in seconds.items()}
+    rows = [("serial loop of `Matcher.match`", median["serial"], differences["serial"], ""),
+            ("`match_many`, this process", median["this process"], differences["this process"], "")]
+    rows += [(f"`match_many`, {workers} spawned worker{'s' if workers > 1 else ''}", median[workers],
+              differences[workers], f"pool start {pools[workers][1]:.1f} s") for workers in (1, 2)]
+    return rows, median["serial"]
 
 
-def all_pairs_figures(name="fhw", count=50, stride=9):
+def all_pairs_figures(name="fhw", count=50, stride=9, repeats=REPEATS):
     built = submaps.build_submaps(name, SCANS, stride)[:count]
     tasks, truths = [], []
     for i in range(len(built)):
@@ -180,15 +210,20 @@ def all_pairs_figures(name="fhw", count=50, stride=9):
             tasks.append((built[i][1], built[j][1], truth + OFFSET))
             truths.append(truth)
     serial_loop(fresh(tasks))
-    serial_s, results = timed(serial_loop, tasks)
     pool, _ = spawn_pool(2, tasks)
+    serial, parallel = [], []
     with pool:
-        parallel_s, parallel = timed(lambda t: tm.match_many(t, executor=pool), tasks)
+        for _ in range(repeats):
+            serial_s, results = timed(serial_loop, tasks)
+            parallel_s, in_parallel = timed(lambda t: tm.match_many(t, executor=pool), tasks)
+            serial.append(serial_s)
+            parallel.append(parallel_s)
     accepted = [k for k, r in enumerate(results) if r.accepted]
     right = sum(np.hypot(*(results[k].pose[:2] - truths[k][:2])) <= 0.1
                 and abs(tm.wrap_angle(results[k].pose[2] - truths[k][2])) <= np.radians(1.0) for k in accepted)
-    return {"submaps": len(built), "pairs": len(tasks), "serial_s": serial_s, "parallel_s": parallel_s,
-            "accepted": len(accepted), "right": right, "difference": worst_difference(parallel, results)}
+    return {"submaps": len(built), "pairs": len(tasks), "serial_s": float(np.median(serial)),
+            "parallel_s": float(np.median(parallel)), "accepted": len(accepted), "right": right,
+            "difference": worst_difference(in_parallel, results)}
 
 
 def memory_figures(tasks, matches=10_000, every=10):
@@ -223,7 +258,7 @@ def main():
     for name in names:
         rows.append(log_figures(name))
         print(rows[-1], flush=True)
-    seconds, grown = large_map_figures() if real_maps.MAPS.is_dir() else (float("nan"), float("nan"))
+    first_s, seconds, grown = large_map_figures() if real_maps.MAPS.is_dir() else (float("nan"),) * 3
     tasks = [task for name in names for task in consecutive_tasks(name)]
     many_rows, serial_s = many_figures(tasks)
     print("match_many done", flush=True)
@@ -239,20 +274,23 @@ def main():
             "| log | submaps | median shape | median known cells | preparation ms (target 10) | "
             "prepared match ms (target 5) | new pairs per second |",
             "|---|---|---|---|---|---|---|", *rows, "",
-            f"A 4000 x 4000 map (gdc_3 tiled) prepared in {seconds:.2f} s (target 0.3), peak resident memory "
-            f"{grown / 1024:.2f} GB higher (target 0.5).", "",
+            f"A 4000 x 4000 map (gdc_3 tiled), in a spawned process of its own: prepared in {seconds:.2f} s "
+            f"(target 0.3; median of 5 new maps, the first {first_s:.2f} s), the process's peak resident memory "
+            f"{grown:.2f} GB higher for the first (target 0.5).", "",
             "## Many pairs per call", "",
             f"Every log's consecutive pairs ({len(tasks)} tasks, new maps: each prepared once however many tasks "
-            f"name it), the same tasks in the same run. Target: `match_many` at least 1.5x the serial loop's "
-            f"pairs per second, the same poses within 1e-6.", "",
+            f"name it), the same tasks in the same run, each way {REPEATS} times in turn: the median seconds. "
+            f"Target: `match_many` at least 1.5x the serial loop's pairs per second, the same poses within 1e-6.",
+            "",
             "| how | seconds | pairs per second | x the serial loop | largest pose difference | |",
             "|---|---|---|---|---|---|",
             *[f"| {how} | {sec:.2f} | {len(tasks) / sec:.0f} | {serial_s / sec:.2f} | {diff:.1e} | {note} |"
               for how, sec, diff, note in many_rows], "",
             f"All-pairs candidate check: {check['submaps']} submaps of fhw (one every 9 scans), all "
             f"{check['pairs']} pairs from the reference's relative poses moved by {OFFSET.tolist()}: "
-            f"{check['serial_s']:.1f} s serially, {check['parallel_s']:.1f} s on 2 spawned workers "
-            f"({check['serial_s'] / check['parallel_s']:.2f}x; poses within {check['difference']:.1e}); "
+            f"{check['serial_s']:.1f} s serially, {check['parallel_s']:.1f} s on 2 spawned workers (medians of "
+            f"{REPEATS} runs each way in turn; {check['serial_s'] / check['parallel_s']:.2f}x; poses within "
+            f"{check['difference']:.1e}); "
             f"{check['accepted']} pairs accepted, {check['right']} of them within 0.1 m and 1 degree of the "
             f"reference.", "",
             f"Resident memory over 10,000 matches, the maps replaced every 10 matches: "

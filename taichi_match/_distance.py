@@ -116,9 +116,22 @@ def _build(ti):
                         dy2 = di * di
                         chord = half[di + reach]
                         a, b = starts[k], ends[k]
-                        for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
-                            dx = ti.max(ti.max(a - j, j - b), 0)
-                            q = dy2 + dx * dx
+                        # left of the run, along it (its row's distance alone), right of it
+                        for j in range(ti.max(a - chord, 0), ti.min(a, w)):
+                            q = dy2 + (a - j) * (a - j)
+                            if ti.static(weighted):
+                                out[i, j] = ti.max(out[i, j], weights[k] * profile[q])
+                            else:
+                                out[i, j] = ti.cast(ti.min(ti.cast(out[i, j], ti.i32), q), dt)
+                        if ti.static(weighted):
+                            v = weights[k] * profile[dy2]
+                            for j in range(a, b + 1):
+                                out[i, j] = ti.max(out[i, j], v)
+                        else:
+                            for j in range(a, b + 1):
+                                out[i, j] = ti.cast(ti.min(ti.cast(out[i, j], ti.i32), dy2), dt)
+                        for j in range(b + 1, ti.min(b + chord + 1, w)):
+                            q = dy2 + (j - b) * (j - b)
                             if ti.static(weighted):
                                 out[i, j] = ti.max(out[i, j], weights[k] * profile[q])
                             else:
