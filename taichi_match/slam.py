@@ -182,7 +182,11 @@ class SlamOptions:
         derail (median ATE 0.123 -> 0.109 m, max 1.43 -> 0.18), but orebro's median ATE rose 0.137
         -> 0.166 m (max 0.163 -> 0.237), its RPE over 10 scans 0.084 -> 0.099 m, csail's 0.076 ->
         0.084, and freiburg-101's wrong loop closures 29 -> 43 (median). ``target_refresh`` 5, whose
-        coarse and finest levels both miss the latest scans, cost orebro too.
+        coarse and finest levels both miss the latest scans, cost orebro too. With the free margin
+        (2026-12-04, five runs per log against bench/SLAM.md's, hours apart): the front-end match
+        median 0.80-0.96 times as long (edmonton 9.8 -> 8.2 ms), but the median ATE rose on
+        edmonton (0.171 -> 0.317 m), orebro (0.120 -> 0.211) and belgioioso (0.107 -> 0.138): the
+        coarse levels bring a scan into the basin, and their latest scans count.
     crop_target : cast the front end's target for each scan only around where the scan can land
         (with ``target_refresh`` 1 and without ``share_coarse``, or ``InvalidOptionError``): the box
         its grid covers at the odometry's guess, widened by ``CROP_METRES`` and ``CROP_RADIANS``
