@@ -17,7 +17,7 @@ one every 20 scans (issue 14's measure: about 1000 x 1000 cells), then
 Then, every figure beside its target:
 
 - a 4000 x 4000 map (gdc_3 tiled) prepared, in a spawned process of its own: seconds (the median
-  of five new maps, and the first), and how much the peak resident memory grew for the first;
+  of nine new maps, and the first), and how much the peak resident memory grew for the first;
 - ``match_many`` against a serial loop of ``Matcher.match`` on the same tasks in the same run
   (every log's consecutive pairs, new maps: preparation included), in this process and on 1 and
   2 spawned worker processes (a pool started and warmed first, as a fleet keeps it; its start
@@ -101,7 +101,7 @@ def log_figures(name):
             f"{1e3 * np.median(prepare):.1f} | {1e3 * np.median(prepared):.1f} | {rate:.0f} |")
 
 
-def large_map_figures(side=4000, maps=5):
+def large_map_figures(side=4000, maps=9):
     """A ``side`` x ``side`` map (gdc_3 tiled) prepared in a spawned process of its own, so that
     its peak resident memory is the preparation's and not what this process held before: (the
     first map's seconds, the median seconds of ``maps`` new maps, the peak resident memory's
@@ -115,16 +115,16 @@ def _large_map_figures(side, maps):
     reps = (-(-side // gdc.shape[0]), -(-side // gdc.shape[1]))
     prob = np.tile(gdc.prob, reps)[:side, :side]
     tm.Matcher().prepare(tm.GridMap(prob[:500, :500], gdc.resolution))      # compile the kernels
-    grids = [tm.GridMap(prob, gdc.resolution) for _ in range(maps)]       # each a map the matcher has not seen
-    before = status_mb("VmHWM")
     seconds = []
-    for k, grid in enumerate(grids):
+    for k in range(maps):
+        grid = tm.GridMap(prob, gdc.resolution)                             # a map the matcher has not seen
+        before = status_mb("VmHWM")
         t0 = time.perf_counter()
         prepared = prepare_fully(tm.Matcher(), grid)
         seconds.append(time.perf_counter() - t0)
         if k == 0:
             grown = (status_mb("VmHWM") - before) / 1024.0
-        del prepared
+        del prepared, grid
     return seconds[0], float(np.median(seconds)), grown
 
 
@@ -275,7 +275,7 @@ def main():
             "prepared match ms (target 5) | new pairs per second |",
             "|---|---|---|---|---|---|---|", *rows, "",
             f"A 4000 x 4000 map (gdc_3 tiled), in a spawned process of its own: prepared in {seconds:.2f} s "
-            f"(target 0.3; median of 5 new maps, the first {first_s:.2f} s), the process's peak resident memory "
+            f"(target 0.3; median of 9 new maps, the first {first_s:.2f} s), the process's peak resident memory "
             f"{grown:.2f} GB higher for the first (target 0.5).", "",
             "## Many pairs per call", "",
             f"Every log's consecutive pairs ({len(tasks)} tasks, new maps: each prepared once however many tasks "

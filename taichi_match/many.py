@@ -195,10 +195,10 @@ MAX_RESENT = 0.1
 
 # A worker's Taichi threads: this many times its share of the machine's cores (at most all of
 # them), so that while one worker receives a chunk, runs Python or has no chunk left, another's
-# kernels take the idle core. Measured on this 2-core machine, 2 spawned workers, six runs each way
-# alternating (2026-12-04): a loop's 123 consecutive submap pairs 1.39x -> 1.46x the serial loop
-# (median; 2 threads each faster in five of six pairs), an all-pairs check of 1,225 pairs 1.78x
-# either way
+# kernels take the idle core. Measured on this 2-core machine, 2 spawned workers, a loop's 123
+# consecutive submap pairs, 14 runs each way alternating over an hour (2026-12-04): median 1.055
+# -> 1.016 s (1.38x -> 1.43x the serial loop's median; faster in 9 of the 14 pairs, by up to 10 %,
+# slower by up to 9 %); an all-pairs check of 1,225 pairs 1.78x either way
 OVERSUBSCRIBE = 2
 
 
