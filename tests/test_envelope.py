@@ -542,6 +542,34 @@ def test_the_conflict_grid_from_stamped_distances_equals_the_exact_transforms(rn
             assert np.all(d[~np.isnan(ref) & (ref > 5)] > 5) and np.all(np.isnan(d[np.isnan(ref)]))
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (1, 300), (300, 1), (3, 2000), (40, 33)])
+def test_the_conflict_grid_in_row_strips_equals_the_exact_transforms_on_thin_maps(shape, rng):
+    # thin maps split each row into many strips (``_launch.row_strips``), some of them in the
+    # ring off the map; stamped walls at 1 and grey ones against the exact transforms, bit for bit
+    from taichi_match._blur import blur_everywhere, wall_transform
+    from taichi_match._envelope import conflict_grid, envelope_profile, near_conflict_grid
+
+    for grey in (False, True):
+        prob = np.where(rng.random(shape) < 0.03, rng.uniform(0.5, 1.0, shape) if grey else 1.0, 0.0)
+        prob[rng.random(shape) < 0.3] = np.nan
+        prob[0, 0] = 1.0
+        grid = GridMap(prob, 0.05)
+        unknown = np.isnan(prob)
+        reach = 13
+        exact = conflict_grid(blur_everywhere(grid, 0.1, kind="envelope",
+                                              transform=None if grey else wall_transform(grid)), unknown)
+        if grey:
+            rows, cols = np.nonzero(prob >= 0.5)
+            got = near_conflict_grid(prob, unknown, reach, 0.5, walls=(rows, cols, prob[rows, cols]))
+            np.testing.assert_allclose(got, exact, rtol=0, atol=1e-6)       # the envelope's two arithmetics
+            assert np.array_equal(got < -0.5, exact < -0.5)                   # the same cells unknown
+        else:
+            prepared = PreparedMap(grid, 0.1, "envelope")
+            assert (prepared._squared is not None) == (shape != (1, 1))     # the stamped path (one cell: too few)
+            assert prepared.conflict.tobytes() == exact.tobytes()
+    assert len(envelope_profile(reach, 0.5)) == reach * reach + 2
+
+
 def test_known_cells_moments_equal_the_listed_cells(rng):
     for shape, origin in [((40, 70), (-1.0, 2.0)), ((100, 33), (3.0, -4.0, 0.7)), ((1, 1), (0.0, 0.0))]:
         prob = rng.random(shape)
