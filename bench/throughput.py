@@ -51,7 +51,7 @@ import submaps  # noqa: E402
 from yardstick import corridor_median_ms  # noqa: E402
 
 SCANS, STRIDE = 40, 20
-REPEATS = 3                     # runs of each way in turn, for the medians of match_many's figures
+REPEATS = 5                     # runs of each way in turn, for the medians of match_many's figures
 OFFSET = np.array([0.1, -0.1, 0.05])
 
 

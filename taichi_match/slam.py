@@ -165,7 +165,10 @@ class SlamOptions:
     """Settings of the mapping loop (see the module docstring).
 
     resolution : cell side of the submaps and the final map, metres.
-    submap_scans : scans per submap (even, >= 4); a new submap every ``submap_scans // 2``.
+    submap_scans : scans per submap (even, >= 4); a new submap every ``submap_scans // 2``. With 16
+        (2026-12-04, five runs per log against bench/SLAM.md's): aces derailed in three runs of five
+        (median ATE 0.078 -> 1.316 m), orebro 0.120 -> 0.278, edmonton 0.171 -> 0.296, csail and
+        fhw worse too; belgioioso and freiburg-101 about the same.
     target_refresh : the front end's target (the older open submap) is cast and prepared again
         after this many scans, and whenever it changes or the graph was optimised: 1 casts it
         for every scan (with the scan before it); ``submap_scans // 2`` or more casts it once
