@@ -200,7 +200,12 @@ class SlamOptions:
         two runs each, alternating), no aces run derailed, but over ten runs per log the median ATE
         rose on orebro (0.125 -> 0.140 m, max 0.163 -> 0.274) and fhw (0.132 -> 0.144) and fell on
         belgioioso (0.143 -> 0.133) (bench/SLAM_crop_target.md, 2026-12-03).
-    max_ray_length : beams are cut there (metres) in submaps and scans.
+    max_ray_length : beams are cut there (metres) in submaps and scans. With 30 (2026-12-04, five
+        runs per log against bench/SLAM.md's): the median ATE fell on belgioioso (0.107 -> 0.085 m),
+        csail (0.106 -> 0.077) and orebro (0.120 -> 0.097, but its worst run 0.172 -> 0.313) and rose
+        on aces (0.078 -> 0.086), edmonton (0.171 -> 0.184, worst 0.289 -> 0.509) and fhw (0.103 ->
+        0.116); 1.06-1.42 times the time per scan (edmonton 27 ms, over the 25 ms target). With 25:
+        aces derailed in three runs of five (median 1.069 m), edmonton 0.209.
     free_margin : the submaps' and the final map's beams count as free only up to this many metres
         short of their returns (``SensorModel.free_margin``; a lone scan's own grid is not cut). A
         wall seen by several scans is a band of cells: the beams landing long clear the cells of
