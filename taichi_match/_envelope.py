@@ -130,8 +130,8 @@ def _build_conflict(ti):
         h, w = source.shape[0], source.shape[1]
         # a strip of a row per work item (``_launch.row_strips``, over the padded columns), its
         # cells in order: the ring off the map, then the map's cells
-        for i, s in ti.ndrange(out.shape[0], strips.shape[0] - 1):
-            c0, c1 = strips[s], strips[s + 1]
+        for i, strip in ti.ndrange(out.shape[0], strips.shape[0] - 1):
+            c0, c1 = strips[strip], strips[strip + 1]
             if i < PAD or i >= h + PAD:
                 for j in range(c0, c1):
                     out[i, j] = ti.f32(_OFF_MAP)

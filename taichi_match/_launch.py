@@ -19,7 +19,7 @@ __all__ = ["launch", "Launcher", "direct_launch_enabled", "use_direct_launch", "
 
 _WRITTEN_FOR = (1, 7)            # the Taichi (major, minor) whose internals this path uses
 
-# Taichi's CPU backend runs a parallel loop of n items in tasks of max(512, n / (32 threads)) items
+# Taichi's CPU backend runs a parallel loop of n items in tasks of max(512, n / (32 x threads)) items
 # (``block_dim`` when adaptive, its default): a loop over the rows of a map of fewer than 1024 rows
 # is one task, on one thread. A kernel working a row at a time loops over at least this many
 # items instead (``row_strips``, ``row_spread``): measured on the preparation of edmonton's
