@@ -65,6 +65,41 @@ def test_a_spawned_process_pool_gives_the_same_bits(tasks, one_each):
     assert same(results, one_each) and same(small_chunks, one_each)
 
 
+def test_a_local_pool_gets_the_maps_as_files_removed_after_the_call(tasks, one_each, monkeypatch):
+    import os
+    import tempfile
+
+    from taichi_match import many
+
+    folders, made = [], tempfile.mkdtemp
+
+    def mkdtemp(**kwargs):
+        folders.append(made(**kwargs))
+        return folders[-1]
+
+    monkeypatch.setattr(many.tempfile, "mkdtemp", mkdtemp)
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn")) as pool:
+        assert same(tm.match_many(tasks, executor=pool), one_each)
+        assert len(folders) == 1 and not os.path.exists(folders[0])
+        # a consumer that stops early: the files go when the generator is closed
+        outcomes = many.iter_matches(tasks, executor=pool, chunk_size=2)
+        next(outcomes)
+        assert len(os.listdir(folders[1])) == 5                  # each distinct map once
+        outcomes.close()
+        assert not os.path.exists(folders[1])
+
+
+def test_maps_go_through_the_executor_where_no_file_can_be_made(tasks, one_each, monkeypatch):
+    from taichi_match import many
+
+    def refuse(**kwargs):
+        raise OSError("no space left on device")
+
+    monkeypatch.setattr(many.tempfile, "mkdtemp", refuse)
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        assert same(tm.match_many(tasks[:6], executor=pool), one_each[:6])
+
+
 def test_probability_maps_go_to_workers_whole(tasks):
     few = tasks[:4]
     expected = [tm.match(a, b, g, evidence="probability") for a, b, g in few]
