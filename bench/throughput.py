@@ -21,7 +21,8 @@ Then, every figure beside its target:
 - ``match_many`` against a serial loop of ``Matcher.match`` on the same tasks in the same run
   (every log's consecutive pairs, new maps: preparation included), in this process and on 1 and
   2 spawned worker processes (a pool started and warmed first, as a fleet keeps it; its start
-  reported apart), the poses compared; each way ``REPEATS`` times in turn, the medians;
+  reported apart), the poses compared; each way in a block of its own, ``REPEATS`` runs of it and of
+  the serial loop in turn, its median against the block's serial median;
 - an all-pairs candidate check: 50 submaps of one log (fhw, one every 9 scans), all 1,225 pairs
   from the reference's relative poses moved by the offset above, serially and on 2 workers: the
   time (medians of ``REPEATS`` runs each way in turn), the pairs accepted and how many of those are
@@ -173,32 +174,36 @@ def spawn_pool(workers, tasks):
 
 
 def many_figures(tasks, repeats=REPEATS):
-    """match_many against the serial loop on ``tasks``, each ``repeats`` times in turn (the
-    machine's speed drifts from minute to minute): rows of the table with the median seconds,
-    the serial loop's median. A first serial run warms this process's memory (fresh memory's
-    first touch is slow on some machines: the first of identical runs took 2x here)."""
+    """match_many against the serial loop on ``tasks``: rows of the table (median seconds, the
+    ratio to the serial loop's median in the same block), the serial loop's median over all
+    blocks. Each way of running has a block of its own, ``repeats`` runs of it and of the serial
+    loop in turn (the machine's speed drifts from minute to minute), its pool started for the
+    block and shut down after it, so that no other pool sits beside it. A first serial run warms
+    this process's memory (fresh memory's first touch is slow on some machines: the first of
+    identical runs took 2x here)."""
     serial_loop(fresh(tasks))
-    pools = {workers: spawn_pool(workers, tasks) for workers in (1, 2)}
-    runs = {"serial": serial_loop, "this process": tm.match_many,
-            1: lambda t: tm.match_many(t, executor=pools[1][0]), 2: lambda t: tm.match_many(t, executor=pools[2][0])}
-    seconds = {how: [] for how in runs}
-    reference, differences = None, {how: 0.0 for how in runs}
-    try:
-        for _ in range(repeats):
-            for how, run in runs.items():
-                sec, results = timed(run, tasks)
-                seconds[how].append(sec)
-                reference = reference or results
-                differences[how] = max(differences[how], worst_difference(results, reference))
-    finally:
-        for pool, _ in pools.values():
-            pool.shutdown()
-    median = {how: float(np.median(values)) for how, values in seconds.items()}
-    rows = [("serial loop of `Matcher.match`", median["serial"], differences["serial"], ""),
-            ("`match_many`, this process", median["this process"], differences["this process"], "")]
-    rows += [(f"`match_many`, {workers} spawned worker{'s' if workers > 1 else ''}", median[workers],
-              differences[workers], f"pool start {pools[workers][1]:.1f} s") for workers in (1, 2)]
-    return rows, median["serial"]
+    reference = serial_loop(fresh(tasks))
+    ways = [("`match_many`, this process", None), ("`match_many`, 1 spawned worker", 1),
+            ("`match_many`, 2 spawned workers", 2)]
+    rows, serial_all = [], []
+    for how, workers in ways:
+        pool, start = spawn_pool(workers, tasks) if workers else (None, None)
+        try:
+            run = (lambda t: tm.match_many(t, executor=pool)) if pool else tm.match_many
+            serial, seconds, difference = [], [], 0.0
+            for k in range(repeats):
+                for way in (("serial", "run") if k % 2 == 0 else ("run", "serial")):
+                    sec, results = timed(serial_loop if way == "serial" else run, tasks)
+                    (serial if way == "serial" else seconds).append(sec)
+                    difference = max(difference, worst_difference(results, reference))
+        finally:
+            if pool:
+                pool.shutdown()
+        serial_all += serial
+        rows.append((how, float(np.median(seconds)), float(np.median(serial)) / float(np.median(seconds)),
+                     difference, f"pool start {start:.1f} s" if pool else ""))
+    serial_s = float(np.median(serial_all))
+    return [("serial loop of `Matcher.match`", serial_s, 1.0, 0.0, "")] + rows, serial_s
 
 
 def all_pairs_figures(name="fhw", count=50, stride=9, repeats=REPEATS):
@@ -279,13 +284,14 @@ def main():
             f"{grown:.2f} GB higher for the first (target 0.5).", "",
             "## Many pairs per call", "",
             f"Every log's consecutive pairs ({len(tasks)} tasks, new maps: each prepared once however many tasks "
-            f"name it), the same tasks in the same run, each way {REPEATS} times in turn: the median seconds. "
+            f"name it), the same tasks in the same run: each way in a block of its own, {REPEATS} runs of it and of "
+            f"the serial loop in turn, its median seconds and its ratio to the block's serial median. "
             f"Target: `match_many` at least 1.5x the serial loop's pairs per second, the same poses within 1e-6.",
             "",
             "| how | seconds | pairs per second | x the serial loop | largest pose difference | |",
             "|---|---|---|---|---|---|",
-            *[f"| {how} | {sec:.2f} | {len(tasks) / sec:.0f} | {serial_s / sec:.2f} | {diff:.1e} | {note} |"
-              for how, sec, diff, note in many_rows], "",
+            *[f"| {how} | {sec:.2f} | {len(tasks) / sec:.0f} | {ratio:.2f} | {diff:.1e} | {note} |"
+              for how, sec, ratio, diff, note in many_rows], "",
             f"All-pairs candidate check: {check['submaps']} submaps of fhw (one every 9 scans), all "
             f"{check['pairs']} pairs from the reference's relative poses moved by {OFFSET.tolist()}: "
             f"{check['serial_s']:.1f} s serially, {check['parallel_s']:.1f} s on 2 spawned workers (medians of "
