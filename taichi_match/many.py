@@ -256,15 +256,19 @@ class _Handover:
     8 chunks to workers that do nothing with them). For a ``ProcessPoolExecutor`` (its workers on
     this machine) each distinct map is written once, as a ``.npy`` file in a private temporary
     directory (in /dev/shm where there is one: memory, not disk), and a worker maps it read-only
-    (``_MapFile``); the directory goes when the call ends. Where a file cannot be written, and for
+    (``_MapFile``); the directory goes when the call ends, and one left by a process killed during
+    a call goes at the next (``_remove_orphans``). Where a file cannot be written, and for
     other executors (Dask's workers may be on other machines), the maps go through the executor."""
+
+    PREFIX = "taichi_match-"
 
     def __init__(self, local: bool):
         self._folder, self._sent = None, {}
         if local:
+            where = "/dev/shm" if os.path.isdir("/dev/shm") else tempfile.gettempdir()
+            _remove_orphans(where, self.PREFIX)
             try:
-                self._folder = tempfile.mkdtemp(prefix="taichi_match-", dir="/dev/shm" if os.path.isdir("/dev/shm")
-                                                else None)
+                self._folder = tempfile.mkdtemp(prefix=f"{self.PREFIX}{os.getpid()}-", dir=where)
             except OSError:
                 self._folder = None
 
@@ -288,6 +292,25 @@ class _Handover:
         if self._folder is not None:
             shutil.rmtree(self._folder, ignore_errors=True)
             self._folder = None
+
+
+def _remove_orphans(where, prefix):
+    """Remove the hand-over folders (``prefix`` PID ``-`` ...) in ``where`` whose process is gone:
+    a process killed during a call leaves its folder, which in /dev/shm holds memory until reboot."""
+    try:
+        names = os.listdir(where)
+    except OSError:
+        return
+    for name in names:
+        pid = name[len(prefix):].split("-", 1)[0] if name.startswith(prefix) else ""
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:                 # gone (another user's live process: PermissionError)
+            shutil.rmtree(os.path.join(where, name), ignore_errors=True)
+        except OSError:
+            pass
 
 
 class _MapFile:

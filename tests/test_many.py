@@ -1,6 +1,7 @@
 """match_many: the results of one match each, in order, in this process or spread over workers."""
 
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
@@ -87,6 +88,25 @@ def test_a_local_pool_gets_the_maps_as_files_removed_after_the_call(tasks, one_e
         assert len(os.listdir(folders[1])) == 5                  # each distinct map once
         outcomes.close()
         assert not os.path.exists(folders[1])
+
+
+def test_a_killed_callers_folder_is_removed_by_the_next_call(tmp_path):
+    import subprocess
+    import sys
+
+    from taichi_match import many
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead = int(gone.stdout)                                   # a process that has ended
+    orphan = tmp_path / f"{many._Handover.PREFIX}{dead}-abc"
+    orphan.mkdir()
+    (orphan / "0.npy").write_bytes(b"x")
+    alive = tmp_path / f"{many._Handover.PREFIX}{os.getppid()}-def"      # a live process's: kept
+    alive.mkdir()
+    other = tmp_path / "taichi_match-notes"                    # not a hand-over folder: kept
+    other.mkdir()
+    many._remove_orphans(str(tmp_path), many._Handover.PREFIX)
+    assert not orphan.exists() and alive.exists() and other.exists()
 
 
 def test_maps_go_through_the_executor_where_no_file_can_be_made(tasks, one_each, monkeypatch):
