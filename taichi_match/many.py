@@ -9,11 +9,10 @@ not on the other tasks, the process or Taichi's thread count.
 With ``executor`` (any ``concurrent.futures.Executor`` whose workers are processes started with
 "spawn" or "forkserver", or Dask's ``Client.get_executor()``) the tasks go out in chunks (blocks
 of consecutive tasks dealt out in turn, ``BLOCK``), each with the maps it names, sent and
-prepared once per chunk; a worker
-starts Taichi with twice its share of the machine's cores, at most all of them
-(``_taichi.set_threads``, ``OVERSUBSCRIBE``). A ``ProcessPoolExecutor``'s workers get the maps as
-files in a private temporary directory (in /dev/shm where there is one), each written once and
-removed when the call ends, not down the executor's pipe (``_Handover``).
+prepared once per chunk; a worker starts Taichi with its share of the machine's cores
+(``_taichi.set_threads``). A ``ProcessPoolExecutor``'s workers get the maps as files in a private
+temporary directory (in /dev/shm where there is one), each written once and removed when the call
+ends, not down the executor's pipe (``_Handover``).
 Each chunk costs a map's transfer and preparation per distinct map it names, so fewer, larger
 chunks suit tasks that share maps (an all-pairs check), more chunks balance unequal tasks and start
 the workers sooner; without ``chunk_size`` the call weighs the two (``_default_chunk_size``).
@@ -142,7 +141,7 @@ def iter_matches(tasks: Iterable[Task], options: Optional[MatchOptions] = None, 
     elif isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise InvalidOptionError(f"chunk_size must be a whole number >= 1; got {shown(chunk_size)}")
     cpus = len(_allowed_cpus())
-    threads = max(1, min(cpus, OVERSUBSCRIBE * cpus // _workers(executor)))
+    threads = max(1, cpus // _workers(executor))
     trinary = matcher.options.evidence == "trinary"
     futures = {}
     handover = _Handover(isinstance(executor, concurrent.futures.ProcessPoolExecutor))
@@ -201,13 +200,11 @@ BLOCK = 16
 CHUNKS_PER_WORKER = 4
 MAX_RESENT = 0.1
 
-# A worker's Taichi threads: this many times its share of the machine's cores (at most all of
-# them), so that while one worker receives a chunk, runs Python or has no chunk left, another's
-# kernels take the idle core. Measured on this 2-core machine, 2 spawned workers, a loop's 123
-# consecutive submap pairs, 14 runs each way alternating over an hour (2026-12-04): median 1.055
-# -> 1.016 s (1.38x -> 1.43x the serial loop's median; faster in 9 of the 14 pairs, by up to 10 %,
-# slower by up to 9 %); an all-pairs check of 1,225 pairs 1.78x either way
-OVERSUBSCRIBE = 2
+# A worker's Taichi threads: its share of the machine's cores. Twice that (so that one worker's
+# kernels might take the core the other leaves idle) was slower: a loop's 123 consecutive submap
+# pairs on 2 spawned workers, one pool of each kind side by side, six runs each in ABBA order
+# (2026-12-04): 0.883 s with one thread each, 1.004 s with two (1.59x and 1.40x the serial loop).
+# (Taichi takes its thread count when it starts in the worker: a pool keeps the first call's.)
 
 
 def _default_chunk_size(tasks, workers: int) -> int:
