@@ -21,7 +21,8 @@ Then, every figure beside its target:
 - ``match_many`` against a serial loop of ``Matcher.match`` on the same tasks in the same run
   (every log's consecutive pairs, new maps: preparation included), in this process and on 1 and
   2 spawned worker processes (a pool started and warmed first, as a fleet keeps it; its start
-  reported apart), the poses compared; each way in a block of its own, ``REPEATS`` runs of it and of
+  reported apart), and on a Dask ``LocalCluster`` of 2 spawned worker processes (with the optional
+  ``distributed``), the poses compared; each way in a block of its own, ``REPEATS`` runs of it and of
   the serial loop in turn, its median against the block's serial median;
 - an all-pairs candidate check: 50 submaps of one log (fhw, one every 9 scans), all 1,225 pairs
   from the reference's relative poses moved by the offset above, serially and on 2 workers: the
@@ -33,6 +34,7 @@ Then, every figure beside its target:
 
 import argparse
 import datetime
+import importlib.util
 import multiprocessing
 import os
 import sys
@@ -173,6 +175,36 @@ def spawn_pool(workers, tasks):
     return pool, start
 
 
+class _DaskPool:
+    """A Dask ``LocalCluster`` of 2 worker processes (spawned by their nannies, a thread each) and
+    its client's executor, shut down together."""
+
+    def __init__(self):
+        import distributed
+
+        self.cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                                dashboard_address=None, worker_class=distributed.Nanny)
+        self.client = distributed.Client(self.cluster)
+        self.executor = self.client.get_executor()
+
+    def shutdown(self):
+        self.client.close()
+        self.cluster.close()
+
+
+def dask_pool(tasks):
+    """(executor, the seconds its cluster took to start and match a corridor on each worker),
+    warmed on ``tasks`` once; the executor's ``shutdown`` closes the cluster."""
+    t0 = time.perf_counter()
+    pool = _DaskPool()
+    grid = corridor(size=4.0, resolution=0.05, width=2.0)
+    tm.match_many([(grid, grid, (0.05, 0.0, 0.0))] * 8, executor=pool.executor, chunk_size=1)
+    start = time.perf_counter() - t0
+    tm.match_many(fresh(tasks), executor=pool.executor)
+    pool.executor.shutdown = pool.shutdown
+    return pool.executor, start
+
+
 def many_figures(tasks, repeats=REPEATS):
     """match_many against the serial loop on ``tasks``: rows of the table (median seconds, the
     ratio to the serial loop's median in the same block), the serial loop's median over all
@@ -185,9 +217,12 @@ def many_figures(tasks, repeats=REPEATS):
     reference = serial_loop(fresh(tasks))
     ways = [("`match_many`, this process", None), ("`match_many`, 1 spawned worker", 1),
             ("`match_many`, 2 spawned workers", 2)]
+    if importlib.util.find_spec("distributed") is not None:
+        ways.append(("`match_many`, Dask `LocalCluster` of 2 spawned workers", "dask"))
     rows, serial_all = [], []
     for how, workers in ways:
-        pool, start = spawn_pool(workers, tasks) if workers else (None, None)
+        pool, start = (dask_pool(tasks) if workers == "dask" else spawn_pool(workers, tasks) if workers
+                       else (None, None))
         try:
             run = (lambda t: tm.match_many(t, executor=pool)) if pool else tm.match_many
             serial, seconds, difference = [], [], 0.0
