@@ -140,8 +140,11 @@ def iter_matches(tasks: Iterable[Task], options: Optional[MatchOptions] = None, 
         chunk_size = _default_chunk_size(tasks, _workers(executor))
     elif isinstance(chunk_size, bool) or not isinstance(chunk_size, int) or chunk_size < 1:
         raise InvalidOptionError(f"chunk_size must be a whole number >= 1; got {shown(chunk_size)}")
-    cpus = len(_allowed_cpus())
-    threads = max(1, cpus // _workers(executor))
+    # a worker's Taichi threads: its share of the cores. Twice that was slower: a loop's 123 consecutive
+    # submap pairs on 2 spawned workers, a pool of each kind, six runs each in ABBA order (2026-12-04):
+    # 0.883 s with one thread each, 1.004 s with two (1.59x and 1.40x the serial loop). (Taichi takes
+    # its thread count when it starts in the worker: a pool keeps its first call's.)
+    threads = max(1, len(_allowed_cpus()) // _workers(executor))
     trinary = matcher.options.evidence == "trinary"
     futures = {}
     handover = _Handover(isinstance(executor, concurrent.futures.ProcessPoolExecutor))
@@ -199,13 +202,6 @@ BLOCK = 16
 # this 2-core machine, 2026-12-04, on bench/throughput.py's tasks, a warmed pool, two runs each).
 CHUNKS_PER_WORKER = 4
 MAX_RESENT = 0.1
-
-# A worker's Taichi threads: its share of the machine's cores. Twice that (so that one worker's
-# kernels might take the core the other leaves idle) was slower: a loop's 123 consecutive submap
-# pairs on 2 spawned workers, one pool of each kind side by side, six runs each in ABBA order
-# (2026-12-04): 0.883 s with one thread each, 1.004 s with two (1.59x and 1.40x the serial loop).
-# (Taichi takes its thread count when it starts in the worker: a pool keeps the first call's.)
-
 
 def _default_chunk_size(tasks, workers: int) -> int:
     """The smallest chunk size that deals the tasks into at most ``CHUNKS_PER_WORKER`` chunks per
@@ -271,17 +267,17 @@ class _Handover:
 
     def send(self, grid: GridMap, trinary: bool):
         """What the worker gets for ``grid``: a ``_MapFile``, or the map itself (``_portable``)."""
-        portable = _portable(grid, trinary) if id(grid) not in self._sent else None
+        if id(grid) in self._sent:
+            return self._sent[id(grid)][0]
+        portable = _portable(grid, trinary)
         if self._folder is None:
             return portable
-        if id(grid) not in self._sent:
-            array = portable._code if trinary else portable.prob
-            path = os.path.join(self._folder, f"{len(self._sent)}.npy")
-            try:
-                np.save(path, array, allow_pickle=False)
-            except OSError:                            # (a full /dev/shm: this map goes the other way)
-                return portable
-            self._sent[id(grid)] = (_MapFile(path, trinary, grid.resolution, grid.corner_pose), grid)
+        path = os.path.join(self._folder, f"{len(self._sent)}.npy")
+        try:
+            np.save(path, portable._code if trinary else portable.prob, allow_pickle=False)
+        except OSError:                                # (a full /dev/shm: this map goes the other way)
+            return portable
+        self._sent[id(grid)] = (_MapFile(path, trinary, grid.resolution, grid.corner_pose), grid)
         return self._sent[id(grid)][0]
 
     def close(self):
