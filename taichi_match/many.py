@@ -203,6 +203,7 @@ BLOCK = 16
 CHUNKS_PER_WORKER = 4
 MAX_RESENT = 0.1
 
+
 def _default_chunk_size(tasks, workers: int) -> int:
     """The smallest chunk size that deals the tasks into at most ``CHUNKS_PER_WORKER`` chunks per
     worker and whose chunks name, summed over chunks, at most ``1 + MAX_RESENT`` times the maps
