@@ -225,7 +225,17 @@ class SlamOptions:
         metres floor, radians floor): the standard deviations of an odometry step's translation
         (each axis) and rotation.
     loop_radius, loop_growth : a submap pair is a loop-closure candidate when their frames lie
-        within ``loop_radius + loop_growth * distance travelled between them`` (metres).
+        within ``loop_radius + loop_growth * distance travelled between them`` (metres). With
+        ``loop_radius`` 8 (2026-12-04, five runs per log against bench/SLAM.md's;
+        bench/SLAM_loop_radius8.md) submaps a few apart along the way become candidates too
+        (1.3-3.1 times as many matched): the median ATE fell on csail (0.106 -> 0.076 m), edmonton
+        (0.171 -> 0.144, its worst run 0.289 -> 0.418) and freiburg-101 (0.046 -> 0.041), rose on
+        belgioioso (0.107 -> 0.131) and orebro (0.120 -> 0.145), an aces run in five derailed
+        (1.46 m), loop closures wrong against the references rose on every log (belgioioso 30 ->
+        63, median) and the loop took 1.1-1.5 times as long per scan (freiburg-101 30 ms; the
+        yardstick 2.2 ms against 2.0). With 5 (bench/SLAM_loop_radius5.md): lower on csail (0.099),
+        freiburg-101 (0.042) and seattle (0.038), higher on aces (0.092), edmonton (0.204) and fhw
+        (0.122): not a default either.
     loop_search : when ``loop_growth * distance travelled`` between a candidate's submaps (the
         drift its guess may carry) exceeds this many metres, beyond the local matcher's basin, the
         match first searches a window of that many metres (at most ``LOOP_SEARCH_MAX``) and
@@ -269,6 +279,13 @@ class SlamOptions:
         aces and fhw gained: not kept.
     robust_kernel : width of the Cauchy kernel on every match's edge (scan-to-submap and loop
         closure), in standard deviations: wider trusts matches more (bench/SLAM.md: 3, 1.5, 1).
+        Graduated non-convexity instead, at the end (gtsam's ``GncLMOptimizer``, truncated least
+        squares, odometry and front-end edges known inliers; 2026-12-04, one run per log): it
+        rejected 7 loop closures of the simulated run's 134 (5 of its 15 wrong against the exact
+        truth; the other 10 agree with the graph to within their covariance) and 0-59 of the real
+        logs' (fhw 59, 25 of them wrong against the reference); re-optimised without them, under
+        the Cauchy kernel, the ATE stayed or rose (aces 0.077 -> 0.082 m, fhw 0.109 -> 0.116), and
+        GNC's own solution rose on seven logs of nine (edmonton 0.171 -> 0.196): not kept.
     loop_consistency : an accepted loop closure enters the graph only when the loop closures
         already there near both its frames do not mostly disagree with it (see the module
         docstring); False: every accepted one enters.
