@@ -403,6 +403,7 @@ def _slam(args):
                                                ("submap_frames", args.submap_frames or None),
                                                ("share_coarse", args.share_coarse or None),
                                                ("crop_target", args.crop_target or None),
+                                               ("loop_radius", args.loop_radius),
                                                ("loop_search", args.loop_search), ("workers", args.workers),
                                                ("loop_ties", None if args.loop_ties == "off" else args.loop_ties),
                                                ("solver", args.solver))
@@ -647,6 +648,9 @@ def main(argv=None):
     slam.add_argument("--submap-scans", type=int, metavar="N", help="scans per submap (even, default 10)")
     slam.add_argument("--target-refresh", type=int, metavar="N", help="the front end casts its target submap again "
                                                                       "after N scans (default 1: for every scan)")
+    slam.add_argument("--loop-radius", type=float, metavar="METRES",
+                      help="loop-closure candidates: submaps whose frames lie within this many metres plus a tenth "
+                           "of the travel between them (default 3, see SlamOptions.loop_radius)")
     slam.add_argument("--loop-search", type=float, metavar="METRES",
                       help="search loop-closure candidates whose drift bound exceeds this within a window first "
                            "(see SlamOptions.loop_search)")

@@ -174,7 +174,10 @@ class SlamOptions:
         for every scan (with the scan before it); ``submap_scans // 2`` or more casts it once
         per submap, when it becomes the target: faster, median ATE over five runs per log lower
         on five of nine (fhw 0.156 -> 0.101 m) but orebro's 0.119 -> 0.269 and edmonton's
-        0.147 -> 0.211 (bench/SLAM_target_refresh5.md against bench/SLAM.md, 2026-12-03).
+        0.147 -> 0.211 (bench/SLAM_target_refresh5.md against bench/SLAM.md, 2026-12-03). With
+        2 (2026-12-04, bench/SLAM_target_refresh2.md): the simulated run better in every figure
+        (RPE over 10 scans 0.26-0.28 degree), orebro and csail lower, but edmonton's median ATE
+        0.171 -> 0.360 m (worst 0.692), aces and fhw higher.
     share_coarse : when the front end's target is cast again within one submap (``target_refresh``),
         only its finest level is prepared anew and its coarser pyramid levels are those of its cast
         when it became the target (``Matcher.prepare(coarse_from=...)``; cast whole again after each

@@ -291,7 +291,8 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
                                                  ("--workers", "workers", (1, 0)),
                                                  ("--loop-ties", "loop_ties", (5.0, None)),
                                                  ("--solver", "solver", ("isam2", "batch")),
-                                                 ("--free-margin", "free_margin", (0.2, 0.1))])
+                                                 ("--free-margin", "free_margin", (0.2, 0.1)),
+                                                 ("--loop-radius", "loop_radius", (8.0, 3.0))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is off without them."""
