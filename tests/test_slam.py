@@ -60,7 +60,8 @@ def test_simulated_run_relative_translation_error_within_target(simulated, mappe
                                         "compiles its kernels for the host, and the loop is chaotic) and with the "
                                         "submaps' free margin 0.27-0.42 (median 0.32, bench/SLAM.md): scans at the "
                                         "90-degree turns slide 0.3-0.6 degree for several scans in a row, so the "
-                                        "target is not met reliably")
+                                        "target is not met reliably (their submaps as cast, not the matcher: "
+                                        "docs/slam.md)")
 def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
     errors = trajectory_errors(mapped.poses, simulated.truth)
     assert errors["rpe_deg"] <= 0.3, errors
