@@ -202,7 +202,13 @@ class SlamOptions:
         (median, seattle) and the front-end match median fell 5-20 % (seattle 13.5-15.5 -> 11.0-12.1 ms,
         two runs each, alternating), no aces run derailed, but over ten runs per log the median ATE
         rose on orebro (0.125 -> 0.140 m, max 0.163 -> 0.274) and fhw (0.132 -> 0.144) and fell on
-        belgioioso (0.143 -> 0.133) (bench/SLAM_crop_target.md, 2026-12-03).
+        belgioioso (0.143 -> 0.133) (bench/SLAM_crop_target.md, 2026-12-03). With the free margin
+        (2026-12-04): five runs per log (bench/SLAM_crop_target_margin.md) gave medians as low as
+        the default's or lower on all nine (csail 0.106 -> 0.084 m, belgioioso 0.107 -> 0.099), but
+        five more each way, alternating in one process (odometry seeds 4-8), derailed a simulated
+        run (0.556 m), raised aces' median (0.096 -> 0.117) and edmonton's (0.175 -> 0.253) and
+        lowered orebro's (0.148 -> 0.107); the front-end match median 0.86-0.96 times as long, the
+        whole loop 0.94-0.99.
     max_ray_length : beams are cut there (metres) in submaps and scans. With 30 (2026-12-04, five
         runs per log against bench/SLAM.md's): the median ATE fell on belgioioso (0.107 -> 0.085 m),
         csail (0.106 -> 0.077) and orebro (0.120 -> 0.097, but its worst run 0.172 -> 0.313) and rose
