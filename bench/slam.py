@@ -166,12 +166,15 @@ def jittered(log, seed, size=1e-6):
 
 
 def spread_table(spreads):
-    lines = ["| log | runs | ATE m (min / median / max) | ATE deg | RPE10 m | RPE10 deg | wrong loops |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| log | runs | ATE m (min / median / max) | ATE deg | RPE10 m | RPE10 deg | wrong loops "
+             "| runs within the ATE target (0.10 m and 1 deg) |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, rows in spreads.items():
         cell = lambda key, fmt: " / ".join(format(v, fmt) for v in np.percentile([r[key] for r in rows], [0, 50, 100]))  # noqa: E731
+        within = sum(r["ate_m"] <= 0.10 and r["ate_deg"] <= 1.0 for r in rows)
         lines.append(f"| {name} | {len(rows)} | {cell('ate_m', '.3f')} | {cell('ate_deg', '.2f')} "
-                     f"| {cell('rpe_m', '.3f')} | {cell('rpe_deg', '.2f')} | {cell('loops_wrong', '.0f')} |")
+                     f"| {cell('rpe_m', '.3f')} | {cell('rpe_deg', '.2f')} | {cell('loops_wrong', '.0f')} "
+                     f"| {within} |")
     return "\n".join(lines)
 
 
