@@ -151,7 +151,9 @@ def run_one(name, log, reference, plots=None, options=None):
                misfit=misfit, ms_per_scan=1e3 * wall / len(log),
                match_ms=1e3 * float(np.median(result.match_seconds)),
                match_parts_ms=1e3 * np.median(result.match_parts, axis=0),
-               stages={k: 1e3 * v / len(log) for k, v in result.seconds.items()})
+               stages={k: 1e3 * v / len(log) for k, v in result.seconds.items()},
+               disagreements=None if result.disagreements is None else
+               (len(result.disagreements), sum(p["repaired"] for p in result.disagreements)))
     if plots:
         picture(Path(plots) / f"{name}.png", name, result, log, reference)
     return row
@@ -166,15 +168,21 @@ def jittered(log, seed, size=1e-6):
 
 
 def spread_table(spreads):
+    audited = all(r.get("disagreements") is not None for rows in spreads.values() for r in rows)
     lines = ["| log | runs | ATE m (min / median / max) | ATE deg | RPE10 m | RPE10 deg | wrong loops "
-             "| runs within the ATE target (0.10 m and 1 deg) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "| runs within the ATE target (0.10 m and 1 deg) |"
+             + (" audit: disagreeing submap pairs (min / median / max), runs with a repair |" if audited else ""),
+             "|---|---|---|---|---|---|---|---|" + ("---|" if audited else "")]
     for name, rows in spreads.items():
         cell = lambda key, fmt: " / ".join(format(v, fmt) for v in np.percentile([r[key] for r in rows], [0, 50, 100]))  # noqa: E731
         within = sum(r["ate_m"] <= 0.10 and r["ate_deg"] <= 1.0 for r in rows)
+        audit = ""
+        if audited:
+            pairs = " / ".join(f"{v:.0f}" for v in np.percentile([r["disagreements"][0] for r in rows], [0, 50, 100]))
+            audit = f" {pairs}, {sum(r['disagreements'][1] > 0 for r in rows)} |"
         lines.append(f"| {name} | {len(rows)} | {cell('ate_m', '.3f')} | {cell('ate_deg', '.2f')} "
                      f"| {cell('rpe_m', '.3f')} | {cell('rpe_deg', '.2f')} | {cell('loops_wrong', '.0f')} "
-                     f"| {within} |")
+                     f"| {within} |" + audit)
     return "\n".join(lines)
 
 

@@ -123,6 +123,42 @@ def test_simulated_run_with_submap_frames_meets_every_trajectory_target(simulate
     assert errors["rpe_m"] <= 0.03 and errors["rpe_deg"] <= 0.3, errors
 
 
+def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
+    """The audit's self-check against a known fault: the final optimisation's answer with the
+    second lap moved 0.8 m sideways of the simulated truth's map gives submaps of the two laps
+    that disagree (walls of one on the other's free space), every pair across the fault; as
+    optimised, none. Without ``audit`` no check is made."""
+    import taichi_match.slam as slam_module
+
+    optimise = slam_module._optimise
+    half = len(simulated.log) // 2
+
+    def shifted(gtsam, graph, values, keys):
+        poses = optimise(gtsam, graph, values, keys)
+        poses[np.asarray(keys) >= half, 1] += 0.8
+        return poses
+
+    found = Slam(audit="report").run(simulated.log)
+    assert found.disagreements == [] and found.seconds["audit"] > 0
+    monkeypatch.setattr(slam_module, "_optimise", shifted)
+    broken = Slam(audit="report").run(simulated.log)
+    pairs = broken.disagreements
+    first_of, scans = SlamOptions().submap_scans // 2, SlamOptions().submap_scans
+    assert len(pairs) >= 5
+    assert all(a * first_of < half <= b * first_of + scans for a, b in (p["submaps"] for p in pairs))
+    assert all(p["agreement"] < 0.25 and p["conflict"] > 0.5 and not p["repaired"] for p in pairs)
+    assert "pairs of submaps disagree" in slam_module.report(broken)
+    assert Slam().run(simulated.log).disagreements is None
+    # "repair" searches each pair from the faulty relative pose: the closures it accepts undo the
+    # fault, each moving its pair about 0.8 m (in the older frame) and turning it by under a degree
+    repaired = Slam(audit="repair").run(simulated.log)
+    closures = [lp for lp in repaired.loops if lp.get("repair") and lp["accepted"]]
+    assert closures and sum(p["repaired"] for p in repaired.disagreements) == len(closures)
+    for loop in closures:
+        moved = np.asarray(loop["pose"]) - np.asarray(loop["guess"])
+        assert abs(math.hypot(moved[0], moved[1]) - 0.8) < 0.1 and abs(moved[2]) < math.radians(1.0), moved
+
+
 def test_helper_processes_change_nothing(simulated, mapped, monkeypatch):
     """Loop-closure candidates matched by helper processes give the run the same bits as all of
     them matched in this process (the default)."""
@@ -293,7 +329,8 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
                                                  ("--loop-ties", "loop_ties", (5.0, None)),
                                                  ("--solver", "solver", ("isam2", "batch")),
                                                  ("--free-margin", "free_margin", (0.2, 0.1)),
-                                                 ("--loop-radius", "loop_radius", (8.0, 3.0))])
+                                                 ("--loop-radius", "loop_radius", (8.0, 3.0)),
+                                                 ("--audit", "audit", ("report", None))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is off without them."""
@@ -371,7 +408,7 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("workers", 1.0), ("workers", True), ("workers", 65), ("workers", None),
                                           ("resolution", 0.002), ("max_ray_length", 300.0),
                                           ("free_margin", -0.1), ("free_margin", math.nan), ("free_margin", True),
-                                          ("free_margin", 20.0)])
+                                          ("free_margin", 20.0), ("audit", "yes"), ("audit", True)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
