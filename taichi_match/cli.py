@@ -406,10 +406,12 @@ def _slam(args):
                                                ("loop_radius", args.loop_radius),
                                                ("loop_search", args.loop_search), ("workers", args.workers),
                                                ("loop_ties", None if args.loop_ties == "off" else args.loop_ties),
-                                               ("solver", args.solver), ("audit", args.audit))
+                                               ("solver", args.solver),
+                                               ("audit", None if args.audit == "off" else args.audit))
                              if v is not None})
-    if args.loop_ties == "off":
-        options = dataclasses.replace(options, loop_ties=None)
+    for field, flag in (("loop_ties", args.loop_ties), ("audit", args.audit)):
+        if flag == "off":
+            options = dataclasses.replace(options, **{field: None})
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
     paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference))
@@ -654,10 +656,11 @@ def main(argv=None):
     slam.add_argument("--loop-search", type=float, metavar="METRES",
                       help="search loop-closure candidates whose drift bound exceeds this within a window first "
                            "(see SlamOptions.loop_search)")
-    slam.add_argument("--audit", choices=("report", "repair"),
+    slam.add_argument("--audit", choices=("off", "report", "repair"),
                       help="after the last optimisation, list the submaps that disagree at their poses (walls of "
-                           "one on the other's free space) in report.md; 'repair' also searches a loop closure "
-                           "between each such pair and optimises again (see SlamOptions.audit)")
+                           "one on the other's free space) in report.md; 'repair' (the default) also searches a "
+                           "loop closure between each such pair and optimises again; 'off': no check (see "
+                           "SlamOptions.audit)")
     slam.add_argument("--loop-ties", type=_metres_or_off, metavar="METRES",
                       help="skip loop-closure candidates that closures already in the graph tie within this many "
                            "metres of travel, or 'off' (see SlamOptions.loop_ties)")

@@ -148,7 +148,7 @@ def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
     assert all(a * first_of < half <= b * first_of + scans for a, b in (p["submaps"] for p in pairs))
     assert all(p["agreement"] < 0.25 and p["conflict"] > 0.5 and not p["repaired"] for p in pairs)
     assert "pairs of submaps disagree" in slam_module.report(broken)
-    assert Slam().run(simulated.log).disagreements is None
+    assert Slam(audit=None).run(simulated.log).disagreements is None
     # "repair" searches each pair from the faulty relative pose: the closures it accepts undo the
     # fault, each moving its pair about 0.8 m (in the older frame) and turning it by under a degree
     repaired = Slam(audit="repair").run(simulated.log)
@@ -330,14 +330,15 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
                                                  ("--solver", "solver", ("isam2", "batch")),
                                                  ("--free-margin", "free_margin", (0.2, 0.1)),
                                                  ("--loop-radius", "loop_radius", (8.0, 3.0)),
-                                                 ("--audit", "audit", ("report", None))])
+                                                 ("--audit", "audit", ("report", "repair"))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
-    which is off without them."""
+    which is the default without them ("off": None)."""
     log_path = tmp_path / "run.log"
     write_carmen(log_path, short_run.log)
     flags = [flag] if values[0] is True else [flag, str(values[0])]
-    runs = [(flags, values[0]), ([], values[1])] + ([([flag, "off"], None)] if flag == "--loop-ties" else [])
+    off = [([flag, "off"], None)] if flag in ("--loop-ties", "--audit") else []
+    runs = [(flags, values[0]), ([], values[1])] + off
     for k, (args, value) in enumerate(runs):
         out = tmp_path / f"out{k}"
         assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
