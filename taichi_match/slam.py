@@ -66,6 +66,13 @@ them from the front while helper processes (``workers``, ``_helper``) take them 
 then judged in order: the same results as matching them one by one here, bit for bit. With
 ``loop_ties`` each is decided and matched in turn instead.
 
+Audit. After the last optimisation the complete submaps are compared pairwise at their optimised
+poses with the verdict's wall test (``audit``): a pair whose walls land on each other's free space
+*disagrees*, the mark of a place mapped twice apart; with "repair" (the default) each such pair
+that no loop closure joins is matched after a search around the graph's relative pose, and the
+accepted matches enter the graph as loop closures before a last optimisation (a derailed aces run,
+1.30 m, came back at 0.08 m; docs/slam.md).
+
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
 poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
 Graph keys: scan k is key k; submap i's frame is key S + i (S scans).
@@ -320,7 +327,7 @@ class SlamOptions:
         runs within the ATE target instead of 14 (its worst 0.122 m instead of 1.304), the other
         logs' spreads the same to within 0.01 m; belgioioso, where the place changed between
         visits, has 8-14 disagreeing pairs in every run. The check casts again the submaps the
-        graph moved and finds their walls' distances: 0.3-1.0 s a log, 0.7-3 ms a scan.
+        graph moved and finds their walls' distances: 0.1-1.0 s a log, 0.6-2.9 ms a scan (bench/SLAM.md).
     loop_consistency : an accepted loop closure enters the graph only when the loop closures
         already there near both its frames do not mostly disagree with it (see the module
         docstring); False: every accepted one enters.
@@ -508,6 +515,12 @@ class Slam:
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.options.robust_kernel),
                                               gaussian)
 
+    def _match_edge(self, gtsam, graph, a, b, res):
+        """A match's edge from node ``a`` to node ``b``: its pose, its calibrated covariance under
+        the Cauchy kernel."""
+        cov = _tangent_covariance(res.pose, res.calibrated_covariance)
+        graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
+
     def _odometry_covariance(self, delta):
         per_m, per_rad, rad_per_m, floor_m, floor_rad = self.options.odometry_sd
         d = math.hypot(delta[0], delta[1])
@@ -670,9 +683,7 @@ class Slam:
             if gated:
                 accepted += 1
                 est[k] = compose(est[target.key], res.pose)
-                cov = _tangent_covariance(res.pose, res.calibrated_covariance)
-                graph.add(gtsam.BetweenFactorPose2(target.key, k, gtsam.Pose2(*res.pose),
-                                                   self._robust_noise(gtsam, cov)))
+                self._match_edge(gtsam, graph, target.key, k, res)
             else:
                 est[k] = pred
             est[k, 2] = wrap_angle(est[k, 2])
@@ -823,14 +834,8 @@ class Slam:
                     self._cast_final(log, other, est)
                 res = self._matcher.match(other.final_grid, submap.final_grid, guess, search_window=window)
                 matched += 1
-            loop = {"helper": index in helped, "window": window, "hypotheses": res.hypotheses,
-                    "submaps": (other.index, submap.index),
-                    "frames": (a, b), "anchors": (other.anchor, submap.anchor),
-                    "members": (other.final_poses, submap.final_poses), "accepted": res.accepted,
-                    "pose": res.pose, "guess": guess, "covariance": res.calibrated_covariance,
-                    "evidence": res.evidence, "status": res.status.name, "repair": False}
+            loop = _loop_record(other, submap, guess, window, res, helper=index in helped, repair=False)
             out.append(loop)
-            loop["edge"] = res.accepted
             if res.accepted and opts.loop_consistency:
                 agree, disagree = self._neighbour_votes(loop, edges, est, travelled)
                 loop["votes"] = (agree, disagree)
@@ -838,8 +843,7 @@ class Slam:
             if loop["edge"]:
                 edges.append(loop)
                 apart = None
-                cov = _tangent_covariance(res.pose, res.calibrated_covariance)
-                graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
+                self._match_edge(gtsam, graph, a, b, res)
         return out
 
     def audit(self, log, submaps, est) -> list:
@@ -886,18 +890,13 @@ class Slam:
             a, b = (by_index[i] for i in pair["submaps"])
             guess = compose(inverse(est[a.key]), est[b.key])
             reach = min(max(0.5, self.options.loop_growth * abs(travelled[b.key] - travelled[a.key])), LOOP_SEARCH_MAX)
-            res = self._matcher.match(a.final_grid, b.final_grid, guess, search_window=(reach, reach / LOOP_SEARCH_ARM))
-            loops.append({"helper": False, "window": (reach, reach / LOOP_SEARCH_ARM), "hypotheses": res.hypotheses,
-                          "submaps": pair["submaps"], "frames": (a.key, b.key), "anchors": (a.anchor, b.anchor),
-                          "members": (a.final_poses, b.final_poses), "accepted": res.accepted, "pose": res.pose,
-                          "guess": guess, "covariance": res.calibrated_covariance, "evidence": res.evidence,
-                          "status": res.status.name, "edge": res.accepted, "repair": True})
+            window = (reach, reach / LOOP_SEARCH_ARM)
+            res = self._matcher.match(a.final_grid, b.final_grid, guess, search_window=window)
+            loops.append(_loop_record(a, b, guess, window, res, helper=False, repair=True))
             if res.accepted:
                 pair["repaired"] = True
                 added += 1
-                cov = _tangent_covariance(res.pose, res.calibrated_covariance)
-                graph.add(gtsam.BetweenFactorPose2(a.key, b.key, gtsam.Pose2(*res.pose),
-                                                   self._robust_noise(gtsam, cov)))
+                self._match_edge(gtsam, graph, a.key, b.key, res)
         return added
 
     def _match_candidates(self, submap, candidates):
@@ -940,6 +939,15 @@ class Slam:
             elif out:
                 collected(True)
         return results, helped
+
+
+def _loop_record(a: _Submap, b: _Submap, guess, window, res, *, helper: bool, repair: bool) -> dict:
+    """The record of a loop-closure match of submap ``b`` in ``a`` (``SlamResult.loops``); its
+    "edge" starts as the verdict's."""
+    return {"helper": helper, "window": window, "hypotheses": res.hypotheses, "submaps": (a.index, b.index),
+            "frames": (a.key, b.key), "anchors": (a.anchor, b.anchor), "members": (a.final_poses, b.final_poses),
+            "accepted": res.accepted, "pose": res.pose, "guess": guess, "covariance": res.calibrated_covariance,
+            "evidence": res.evidence, "status": res.status.name, "edge": res.accepted, "repair": repair}
 
 
 def tie_distances(source, targets, edges, travelled) -> np.ndarray:
