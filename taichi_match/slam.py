@@ -881,7 +881,8 @@ class Slam:
         """Match each disagreeing pair that no loop closure joins after a search around the graph's
         relative pose (``audit``); the accepted ones go into the graph and ``loops``. Returns
         how many."""
-        joined = {loop["submaps"] for loop in loops if loop["edge"]}
+        edges = [loop for loop in loops if loop["edge"]]
+        joined = {loop["submaps"] for loop in edges}
         by_index = {sub.index: sub for sub in submaps}
         added = 0
         for pair in disagreements:
@@ -892,8 +893,14 @@ class Slam:
             reach = min(max(0.5, self.options.loop_growth * abs(travelled[b.key] - travelled[a.key])), LOOP_SEARCH_MAX)
             window = (reach, reach / LOOP_SEARCH_ARM)
             res = self._matcher.match(a.final_grid, b.final_grid, guess, search_window=window)
-            loops.append(_loop_record(a, b, guess, window, res, helper=False, repair=True))
-            if res.accepted:
+            loop = _loop_record(a, b, guess, window, res, helper=False, repair=True)
+            loops.append(loop)
+            if res.accepted and self.options.loop_consistency:
+                agree, disagree = self._neighbour_votes(loop, edges, est, travelled)
+                loop["votes"] = (agree, disagree)
+                loop["edge"] = disagree <= agree
+            if loop["edge"]:
+                edges.append(loop)
                 pair["repaired"] = True
                 added += 1
                 self._match_edge(gtsam, graph, a.key, b.key, res)
