@@ -372,7 +372,7 @@ def _slam(args):
 
     from taichi_match import InvalidOptionError
     from taichi_match.logs import read_carmen, read_tum
-    from taichi_match.slam import Slam, SlamOptions, output_paths, write_outputs
+    from taichi_match.slam import Slam, SlamOptions, loop_summary, output_paths, write_outputs
 
     output_paths(args.out, force=args.force, keep=(args.log, args.reference))      # before any work
     bag = os.path.isdir(args.log) or os.path.splitext(args.log)[1] in (".bag", ".db3", ".mcap")
@@ -418,8 +418,7 @@ def _slam(args):
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
     print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
-          f"{accepted}/{tried}; loop closures accepted {sum(lp['accepted'] for lp in result.loops)}/"
-          f"{len(result.loops)}, in the graph {sum(lp['edge'] for lp in result.loops)}")
+          f"{accepted}/{tried}; {loop_summary(result)}")
     if reference is not None:
         from taichi_match.evaluation import trajectory_errors
 
@@ -440,7 +439,7 @@ def _slam(args):
 def _demo_slam(args):
     from taichi_match.evaluation import align_se2, trajectory_errors
     from taichi_match.simulate import simulate_log
-    from taichi_match.slam import Slam
+    from taichi_match.slam import Slam, loop_summary
 
     run = simulate_log(args.seed)
     print(f"A simulated robot twice round a 24 x 16 m floor plan (taichi_match.simulate, seed {args.seed}): "
@@ -451,9 +450,7 @@ def _demo_slam(args):
     odometry = trajectory_errors(run.log.poses, run.truth)
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
-    print(f"scan-to-submap matches accepted {accepted}/{tried}; loop closures accepted "
-          f"{sum(loop['accepted'] for loop in result.loops)}/{len(result.loops)}, in the graph "
-          f"{sum(loop['edge'] for loop in result.loops)}")
+    print(f"scan-to-submap matches accepted {accepted}/{tried}; {loop_summary(result)}")
     print(f"against the simulated truth: ATE {errors['ate_m']:.3f} m {errors['ate_deg']:.2f} deg, RPE over 10 scans "
           f"{errors['rpe_m']:.3f} m {errors['rpe_deg']:.2f} deg")
     print(f"the odometry alone:          ATE {odometry['ate_m']:.3f} m {odometry['ate_deg']:.2f} deg, "

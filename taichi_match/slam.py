@@ -98,7 +98,8 @@ from ._verdict import MAX_CONFLICT, MIN_AGREEMENT, MIN_WALLS, compare_walls, pla
 from .logs import LaserLog
 from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
 
-__all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "scan_accepted"]
+__all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "loop_summary",
+           "scan_accepted"]
 
 # One scan alone: a return is a wall, a ray free (log-odds +-2: p 0.88 / 0.12, beyond the
 # trinary thresholds that the default model's single observation, +0.9 / -0.4, falls between).
@@ -319,8 +320,12 @@ class SlamOptions:
         ``SlamResult.disagreements``; "repair" (the default) also matches each such pair that no
         loop closure joins after a search within ``loop_growth`` times the distance travelled
         between them (0.5-``LOOP_SEARCH_MAX`` metres, ``LOOP_SEARCH_ARM`` times fewer radians)
-        around the graph's relative pose, adds the accepted ones as loop closures (``loops``,
-        "repair": True) and optimises again; None: neither. A run derailed by loop closures the
+        around the graph's relative pose, records each match in ``loops`` ("repair": True), adds
+        the accepted ones that pass the neighbours' vote (``loop_consistency``) to the graph as
+        loop closures and optimises again; None: neither. The test counts cells
+        (``_verdict.AGREE_CELLS``, ``CONFLICT_CELLS``), so at coarse ``resolution`` it loosens: on
+        a simulated run mapped 6-7 m astray it flagged 28 pairs at 0.05 m cells, 3 at 0.2 m, none
+        at 0.5 m. A run derailed by loop closures the
         local matcher could not find (aces, odometry jitter seed 12: ATE 1.304 m) comes back with
         "repair": 80 pairs disagreed, 44 repair closures, ATE 0.082 m. Over twenty runs per log
         (bench/SLAM_audit_repair_20runs.md against bench/SLAM_20runs.md, 2026-12-04): aces 16
@@ -401,7 +406,7 @@ class SlamOptions:
             raise InvalidOptionError(f"loop_ties must be None or a finite number >= 0; got {shown(self.loop_ties)}")
         if self.solver not in SOLVERS:
             raise InvalidOptionError(f"solver must be one of {SOLVERS}; got {shown(self.solver)}")
-        if self.audit not in AUDITS:
+        if not (self.audit is None or isinstance(self.audit, str)) or self.audit not in AUDITS:
             raise InvalidOptionError(f"audit must be one of {AUDITS}; got {shown(self.audit)}")
         if self.loop_ties is not None and self.workers:
             raise InvalidOptionError("loop_ties decides each candidate on the closures judged before it: it needs "
@@ -441,9 +446,10 @@ class SlamResult:
         scan included.
     match_parts : (T, 3) the same in parts: preparing the target, preparing the scan, and the
         match of the two prepared maps (``MatchResult.seconds``), seconds.
-    disagreements : with ``audit``, one dict per pair of complete submaps that disagree at the
-        optimised poses before any repair (submaps, walls compared, agreement, conflict, repaired:
-        whether a repair closure now joins them); None without ``audit``.
+    disagreements : with ``audit``, one dict per pair of complete submaps that disagreed at the
+        poses optimised before the audit (submaps, walls compared, agreement, conflict, repaired:
+        whether a repair closure now joins them; ``poses`` are those optimised again after the
+        repair); None without ``audit``.
     """
 
     poses: np.ndarray
@@ -878,9 +884,9 @@ class Slam:
         return out
 
     def _repair(self, log, submaps, est, travelled, graph, gtsam, disagreements, loops) -> int:
-        """Match each disagreeing pair that no loop closure joins after a search around the graph's
-        relative pose (``audit``); the accepted ones go into the graph and ``loops``. Returns
-        how many."""
+        """Match each disagreeing pair that no loop closure in the graph joins after a search around
+        the graph's relative pose (``audit``): each match goes into ``loops``, the accepted ones
+        that pass the neighbours' vote (``loop_consistency``) into the graph. Returns how many."""
         edges = [loop for loop in loops if loop["edge"]]
         joined = {loop["submaps"] for loop in edges}
         by_index = {sub.index: sub for sub in submaps}
@@ -1137,26 +1143,39 @@ def _plain_graph(gtsam, graph):
     return plain
 
 
+def loop_summary(result: SlamResult) -> str:
+    """The loop closures in one line: accepted of tried and in the graph, the loop-closing stage's
+    and the audit's repairs (``audit``) apart."""
+    def counts(loops):
+        return (f"accepted {sum(lp['accepted'] for lp in loops)}/{len(loops)}, "
+                f"in the graph {sum(lp['edge'] for lp in loops)}")
+
+    repairs = [lp for lp in result.loops if lp.get("repair")]
+    text = f"loop closures {counts([lp for lp in result.loops if not lp.get('repair')])}"
+    return text + (f"; the audit's repairs {counts(repairs)}" if repairs else "")
+
+
 def report(result: SlamResult, source: str = "") -> str:
     """The run's settings, counts and time per stage as Markdown."""
     n = len(result.poses)
     total = sum(result.seconds.values())
     accepted, tried = result.scan_matches
-    loops_ok = sum(loop["accepted"] for loop in result.loops)
-    loops_in = sum(loop["edge"] for loop in result.loops)
     lines = ["# taichi-match slam", "", f"Input: `{source}`" if source else "", "",
              f"- scans: {n}; submaps of {result.options.submap_scans} scans at {result.options.resolution} m",
              f"- scan-to-submap matches accepted: {accepted} of {tried}",
-             f"- loop closures accepted: {loops_ok} of {len(result.loops)} candidates; in the graph (consistent with "
-             f"their neighbours): {loops_in}; matched by helper processes: {sum(lp['helper'] for lp in result.loops)}; "
-             f"not matched, already tied (``loop_ties``): {result.loops_tied}",
+             f"- {loop_summary(result)} (in the graph: also consistent with their neighbours); matched by helper "
+             f"processes: {sum(lp['helper'] for lp in result.loops)}; not matched, already tied (``loop_ties``): "
+             f"{result.loops_tied}",
              f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", ""]
     if result.disagreements is not None:
         pairs = result.disagreements
-        lines += [f"Audit: {len(pairs)} pairs of submaps disagree at the optimised poses (walls of one on the "
-                  f"other's free space){':' if pairs else '.'}", ""]
+        ending = ":" if pairs else "."
+        if pairs and result.options.audit == "repair":
+            ending = f"; {sum(p['repaired'] for p in pairs)} of them now joined by a repair closure, optimised again:"
+        lines += [f"Audit: {len(pairs)} pairs of submaps disagreed at the poses optimised before the audit (walls of "
+                  f"one on the other's free space){ending}", ""]
         lines += [f"- submaps {a} and {b}: {p['walls']} walls compared, {p['agreement']:.2f} agree, "
-                  f"{p['conflict']:.2f} on free space{'; repaired by a loop closure' if p['repaired'] else ''}"
+                  f"{p['conflict']:.2f} on free space{'; repaired' if p['repaired'] else ''}"
                   for p in pairs for a, b in [p["submaps"]]]
         lines += [""] if pairs else []
     lines += ["| stage | seconds | ms per scan |", "|---|---|---|"]

@@ -157,6 +157,16 @@ def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
     for loop in closures:
         moved = np.asarray(loop["pose"]) - np.asarray(loop["guess"])
         assert abs(math.hypot(moved[0], moved[1]) - 0.8) < 0.1 and abs(moved[2]) < math.radians(1.0), moved
+    text = slam_module.report(repaired)
+    assert f"the audit's repairs accepted {len(closures)}/" in text and f"{len(closures)} of them now joined" in text
+    # the repair's closures face the neighbours' vote like any loop closure: vetoed, none enters the graph
+    votes = Slam._neighbour_votes
+    monkeypatch.setattr(Slam, "_neighbour_votes",
+                        lambda self, loop, *args: (0, 1) if loop["repair"] else votes(self, loop, *args))
+    vetoed = Slam(audit="repair").run(simulated.log)
+    tried = [lp for lp in vetoed.loops if lp["repair"]]
+    assert any(lp["accepted"] for lp in tried) and not any(lp["edge"] for lp in tried)
+    assert vetoed.disagreements and not any(p["repaired"] for p in vetoed.disagreements)
 
 
 def test_helper_processes_change_nothing(simulated, mapped, monkeypatch):
@@ -409,7 +419,8 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("workers", 1.0), ("workers", True), ("workers", 65), ("workers", None),
                                           ("resolution", 0.002), ("max_ray_length", 300.0),
                                           ("free_margin", -0.1), ("free_margin", math.nan), ("free_margin", True),
-                                          ("free_margin", 20.0), ("audit", "yes"), ("audit", True)])
+                                          ("free_margin", 20.0), ("audit", "yes"), ("audit", True),
+                                          ("audit", np.array(["repair", "report"]))])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
