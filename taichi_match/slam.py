@@ -620,6 +620,8 @@ class Slam:
         half = opts.submap_scans // 2
         frames = n // half + 2                   # an upper bound on the number of submaps
         usable = self._usable(log)
+        if not usable.any():                     # before the loop, not when the final map is made
+            raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
         castable = usable.copy()                 # scans the open submaps are cast from (see the module doc)
         seconds = {"scan grids": 0.0, "submap grids": 0.0, "scan matching": 0.0, "loop closing": 0.0,
                    "optimisation": 0.0, "audit": 0.0, "final map": 0.0}

@@ -401,6 +401,12 @@ def test_bad_logs_raise(short_run):
     still = tuple(dataclasses.replace(s, pose=np.zeros(3)) for s in short_run.log.scans)
     with pytest.raises(InvalidOptionError, match="no odometry"):
         Slam().run(LaserLog(still, np.zeros((0, 4))))
+    # no scan with a usable reading: refused before the first scan is matched, not after the loop
+    blind = tuple(dataclasses.replace(s, ranges=np.full(len(s.ranges), np.nan)) for s in short_run.log.scans)
+    steps = []
+    with pytest.raises(InvalidOptionError, match="no usable beam"):
+        Slam().run(LaserLog(blind, short_run.log.odometry), progress=lambda k, n: steps.append(k))
+    assert steps == []
 
 
 def test_truncated_log_raises(short_run, tmp_path):
