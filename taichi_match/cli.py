@@ -418,7 +418,7 @@ def _slam(args):
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
     print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
-          f"{accepted}/{tried}; {loop_summary(result)}")
+          f"{accepted}/{tried}; {loop_summary(result)}{_audit_line(result)}")
     if reference is not None:
         from taichi_match.evaluation import trajectory_errors
 
@@ -450,7 +450,7 @@ def _demo_slam(args):
     odometry = trajectory_errors(run.log.poses, run.truth)
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
-    print(f"scan-to-submap matches accepted {accepted}/{tried}; {loop_summary(result)}")
+    print(f"scan-to-submap matches accepted {accepted}/{tried}; {loop_summary(result)}{_audit_line(result)}")
     print(f"against the simulated truth: ATE {errors['ate_m']:.3f} m {errors['ate_deg']:.2f} deg, RPE over 10 scans "
           f"{errors['rpe_m']:.3f} m {errors['rpe_deg']:.2f} deg")
     print(f"the odometry alone:          ATE {odometry['ate_m']:.3f} m {odometry['ate_deg']:.2f} deg, "
@@ -478,6 +478,17 @@ def _metres_or_off(text: str):
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number of metres or 'off', got {text!r}") from None
+
+
+def _audit_line(result) -> str:
+    """The audit's finding in a line, for the summaries ("" without ``audit``)."""
+    pairs = result.disagreements
+    if pairs is None:
+        return ""
+    line = f"\nthe audit (the map's self-check): {len(pairs)} pairs of submaps disagreed"
+    if pairs and result.options.audit == "repair":
+        line += f", {sum(p['repaired'] for p in pairs)} of them joined by a repair closure since"
+    return line
 
 
 def _progress(label, total, enabled, unit="scan"):

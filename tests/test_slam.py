@@ -298,7 +298,7 @@ def test_cli_slam(short_run, tmp_path, capsys):
     write_carmen(log_path, short_run.log)
     assert main(["slam", str(log_path), "--out", str(tmp_path / "out")]) == 0
     assert (tmp_path / "out" / "trajectory.tum").exists() and (tmp_path / "out" / "map.pgm").exists()
-    capsys.readouterr()
+    assert "the audit (the map's self-check): 0 pairs of submaps disagreed" in capsys.readouterr().out
     assert main(["slam", str(log_path), "--out", str(tmp_path / "out")]) == 2          # outputs exist
     assert "--force" in capsys.readouterr().err
     truncated = tmp_path / "truncated.log"
@@ -600,10 +600,12 @@ def test_trajectory_errors_match_evo():
 
 
 def test_cli_demo_slam(capsys):
-    """The README's demo: exit 0, the error against the simulated truth printed."""
+    """The README's demo: exit 0, the error against the simulated truth and the audit's finding
+    (none: the run is right) printed."""
     assert main(["demo-slam", "--plot", ""]) == 0
     out = capsys.readouterr().out
     assert "against the simulated truth: ATE" in out and "the odometry alone" in out
+    assert "0 pairs of submaps disagreed" in out
 
 
 def test_cli_never_writes_over_its_inputs(short_run, tmp_path, capsys):
