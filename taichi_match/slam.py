@@ -448,8 +448,9 @@ class SlamResult:
         match of the two prepared maps (``MatchResult.seconds``), seconds.
     disagreements : with ``audit``, one dict per pair of complete submaps that disagreed at the
         poses optimised before the audit (submaps, walls compared, agreement, conflict, repaired:
-        whether a repair closure now joins them; ``poses`` are those optimised again after the
-        repair); None without ``audit``.
+        whether a repair closure now joins them; with "repair" also joined: whether a loop closure
+        in the graph joined them already, so no repair was searched; ``poses`` are those optimised
+        again after the repair); None without ``audit``.
     """
 
     poses: np.ndarray
@@ -894,7 +895,8 @@ class Slam:
         by_index = {sub.index: sub for sub in submaps}
         added = 0
         for pair in disagreements:
-            if pair["submaps"] in joined:
+            pair["joined"] = pair["submaps"] in joined
+            if pair["joined"]:
                 continue
             a, b = (by_index[i] for i in pair["submaps"])
             guess = compose(inverse(est[a.key]), est[b.key])
@@ -1176,8 +1178,9 @@ def report(result: SlamResult, source: str = "") -> str:
             ending = f"; {sum(p['repaired'] for p in pairs)} of them now joined by a repair closure, optimised again:"
         lines += [f"Audit: {len(pairs)} pairs of submaps disagreed at the poses optimised before the audit (walls of "
                   f"one on the other's free space){ending}", ""]
+        notes = {(True, False): "; repaired", (False, True): "; a loop closure in the graph joins them"}
         lines += [f"- submaps {a} and {b}: {p['walls']} walls compared, {p['agreement']:.2f} agree, "
-                  f"{p['conflict']:.2f} on free space{'; repaired' if p['repaired'] else ''}"
+                  f"{p['conflict']:.2f} on free space{notes.get((p['repaired'], p.get('joined', False)), '')}"
                   for p in pairs for a, b in [p["submaps"]]]
         lines += [""] if pairs else []
     lines += ["| stage | seconds | ms per scan |", "|---|---|---|"]

@@ -157,7 +157,13 @@ def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
     for loop in closures:
         moved = np.asarray(loop["pose"]) - np.asarray(loop["guess"])
         assert abs(math.hypot(moved[0], moved[1]) - 0.8) < 0.1 and abs(moved[2]) < math.radians(1.0), moved
+    # pairs a loop closure in the graph joins already are not searched again, and said so
+    joined = [p for p in repaired.disagreements if p["joined"]]
+    in_graph = {lp["submaps"] for lp in repaired.loops if lp["edge"] and not lp["repair"]}
+    assert {p["submaps"] for p in joined} == {p["submaps"] for p in repaired.disagreements} & in_graph
+    assert joined and not any(p["repaired"] for p in joined)
     text = slam_module.report(repaired)
+    assert text.count("a loop closure in the graph joins them") == len(joined)
     assert f"the audit's repairs accepted {len(closures)}/" in text and f"{len(closures)} of them now joined" in text
     # the repair's closures face the neighbours' vote like any loop closure: vetoed, none enters the graph
     votes = Slam._neighbour_votes
