@@ -325,9 +325,9 @@ class SlamOptions:
         loop closures and optimises again; None: neither. The test counts cells
         (``_verdict.AGREE_CELLS``, ``CONFLICT_CELLS``), so at coarse ``resolution`` it loosens: on
         a simulated run mapped 6-7 m astray it flagged 28 pairs at 0.05 m cells, 3 at 0.2 m, none
-        at 0.5 m. A run derailed by loop closures the
-        local matcher could not find (aces, odometry jitter seed 12: ATE 1.304 m) comes back with
-        "repair": 80 pairs disagreed, 44 repair closures, ATE 0.082 m. Over twenty runs per log
+        at 0.5 m. A run derailed by loop closures the local matcher could not find (aces,
+        odometry jitter seed 12: ATE 1.304 m) comes back with "repair": 80 pairs disagreed, 44
+        repair closures, ATE 0.082 m. Over twenty runs per log
         (bench/SLAM_audit_repair_20runs.md against bench/SLAM_20runs.md, 2026-12-04): aces 16
         runs within the ATE target instead of 14 (its worst 0.122 m instead of 1.304), the other
         logs' spreads the same to within 0.01 m; belgioioso, where the place changed between
@@ -802,6 +802,18 @@ class Slam:
                 disagree += 1
         return agree, disagree
 
+    def _admitted(self, loop, edges, est, travelled) -> bool:
+        """Whether an accepted loop closure enters the graph: unless the neighbours' vote
+        (``loop_consistency``) is against it. Sets its "edge" (and "votes"); appends it to
+        ``edges`` when it enters."""
+        if loop["accepted"] and self.options.loop_consistency:
+            agree, disagree = self._neighbour_votes(loop, edges, est, travelled)
+            loop["votes"] = (agree, disagree)
+            loop["edge"] = disagree <= agree
+        if loop["edge"]:
+            edges.append(loop)
+        return loop["edge"]
+
     def _close_loops(self, log, submap, done, est, travelled, graph, gtsam, usable, edges):
         opts = self.options
         out = []
@@ -845,12 +857,7 @@ class Slam:
                 matched += 1
             loop = _loop_record(other, submap, guess, window, res, helper=index in helped, repair=False)
             out.append(loop)
-            if res.accepted and opts.loop_consistency:
-                agree, disagree = self._neighbour_votes(loop, edges, est, travelled)
-                loop["votes"] = (agree, disagree)
-                loop["edge"] = disagree <= agree
-            if loop["edge"]:
-                edges.append(loop)
+            if self._admitted(loop, edges, est, travelled):
                 apart = None
                 self._match_edge(gtsam, graph, a, b, res)
         return out
@@ -905,12 +912,7 @@ class Slam:
             res = self._matcher.match(a.final_grid, b.final_grid, guess, search_window=window)
             loop = _loop_record(a, b, guess, window, res, helper=False, repair=True)
             loops.append(loop)
-            if res.accepted and self.options.loop_consistency:
-                agree, disagree = self._neighbour_votes(loop, edges, est, travelled)
-                loop["votes"] = (agree, disagree)
-                loop["edge"] = disagree <= agree
-            if loop["edge"]:
-                edges.append(loop)
+            if self._admitted(loop, edges, est, travelled):
                 pair["repaired"] = True
                 added += 1
                 self._match_edge(gtsam, graph, a.key, b.key, res)
