@@ -95,7 +95,7 @@ from ._matcher import Matcher
 from ._options import MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT, MIN_WALLS, compare_walls, placed_walls
-from .logs import LaserLog
+from .logs import LaserLog, Scan
 from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
 
 __all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "loop_summary",
@@ -468,6 +468,7 @@ class SlamResult:
     match_parts: np.ndarray
     loops_tied: int = 0
     disagreements: Optional[list] = None
+    add_seconds: Optional[np.ndarray] = None
 
 
 class _Submap:
@@ -479,6 +480,61 @@ class _Submap:
         self.final_grid = None        # once complete: its scans cast at the estimates of its last cast
         self.final_poses = None       # (scans, poses in the frame) of that cast (``Slam._cast_final``)
         self.footprint = None         # its Footprint
+
+
+class _Mapping:
+    """The state of one run of the mapping loop (``Slam.add``). Arrays indexed by scan (``odo``,
+    ``usable``, ``castable``) or by graph key (``est``, ``travelled``) grow as scans come;
+    ``frame_keys``: the first submap frame's key with ``submap_frames`` (the log's length)."""
+
+    def __init__(self, gtsam, n, options):
+        self.gtsam = gtsam
+        self.frame_keys = n
+        size = 1 if n is None else n + n // (options.submap_scans // 2) + 2      # scans and frames
+        self.est = np.zeros((size, 3))            # scans' poses, then the submaps' frames (graph keys)
+        self.travelled = np.zeros(size)           # odometry path length up to each scan (a frame: its first scan's)
+        self.odo = np.zeros((size, 3))
+        self.usable = np.zeros(size, dtype=bool)  # whether a scan has a reading the submaps would cast
+        self.castable = np.zeros(size, dtype=bool)    # scans the open submaps are cast from (module docstring)
+        self.scans = []
+        self.graph = gtsam.NonlinearFactorGraph()
+        self.values = gtsam.Values()
+        self.keys = []
+        self.solver = _Solver(gtsam, options.solver)
+        self.submaps, self.done = [], []          # open (the older first), complete
+        self.accepted = self.tried = 0
+        self.loops, self.records, self.match_parts, self.add_seconds = [], [], [], []
+        self.seconds = {"scan grids": 0.0, "submap grids": 0.0, "scan matching": 0.0, "loop closing": 0.0,
+                        "optimisation": 0.0, "audit": 0.0, "final map": 0.0}
+        self.target_cast = None                   # (submap, scan, grid): the front end's target as last cast
+        self.coarse = None                        # its PreparedMap when cast whole (``share_coarse``)
+        self.closed = False                       # whether the latest scan completed a submap
+
+    def grow(self, size):
+        """Room for ``size`` scans (doubling)."""
+        if size > len(self.est):
+            for name in ("est", "travelled", "odo", "usable", "castable"):
+                old = getattr(self, name)
+                new = np.zeros((max(size, 2 * len(old)),) + old.shape[1:], dtype=old.dtype)
+                new[:len(old)] = old
+                setattr(self, name, new)
+
+
+def _checked_scan(scan) -> Scan:
+    """``scan`` if ``Slam.add`` can map it: else InvalidOptionError saying why."""
+    if not isinstance(scan, Scan):
+        raise InvalidOptionError(f"a scan must be a taichi_match.logs.Scan; got {type(scan).__name__}")
+    pose, ranges, angles = (np.asarray(v) for v in (scan.pose, scan.ranges, scan.angles))
+    if pose.shape != (3,) or pose.dtype.kind not in "iuf" or not np.all(np.isfinite(pose)):
+        raise InvalidOptionError(f"a scan's pose must be three finite numbers (x, y, theta); got {shown(scan.pose)}")
+    if ranges.ndim != 1 or ranges.shape != angles.shape or not {ranges.dtype.kind, angles.dtype.kind} <= set("iuf"):
+        raise InvalidOptionError(f"a scan's ranges and angles must be numbers, 1-D of one length; got shapes "
+                                 f"{ranges.shape} and {angles.shape}")
+    if not (isinstance(scan.timestamp, (int, float, np.number)) and math.isfinite(scan.timestamp)):
+        raise InvalidOptionError(f"a scan's timestamp must be a finite number; got {shown(scan.timestamp)}")
+    if not (isinstance(scan.max_range, (int, float, np.number)) and scan.max_range > 0):
+        raise InvalidOptionError(f"a scan's max_range must be a positive number; got {shown(scan.max_range)}")
+    return scan
 
 
 def _gtsam():
@@ -512,6 +568,7 @@ class Slam:
                                       free_margin=self.options.free_margin)
         self._counts = {}
         self._helpers = []
+        self._mapping = None                  # the run under way (``add``)
 
     def _odometry_noise(self, gtsam, delta):
         return gtsam.noiseModel.Gaussian.Covariance(self._odometry_covariance(delta))
@@ -548,33 +605,33 @@ class Slam:
         d[2] = wrap_angle(d[2])
         return float(d @ np.linalg.solve(cov, d)) <= ODOMETRY_GATE
 
-    def _usable(self, log):
-        """(S,) bool: whether each scan has a reading the submaps would cast."""
-        return np.array([len(beam_segments([scan], np.zeros((1, 3)), self._map_model)[0]) > 0 for scan in log.scans])
+    def _usable(self, scan) -> bool:
+        """Whether ``scan`` has a reading the submaps would cast."""
+        return len(beam_segments([scan], np.zeros((1, 3)), self._map_model)[0]) > 0
 
-    def _submap_grid(self, log, submap, est, cast=None, bounds=None):
+    def _submap_grid(self, scans, submap, est, cast=None, bounds=None):
         """The front end's target: ``_cast_submap``'s grid, in the scan matcher's evidence."""
-        grid, _ = self._cast_submap(log, submap, est, cast, bounds, self._scan_matcher.options.evidence)
+        grid, _ = self._cast_submap(scans, submap, est, cast, bounds, self._scan_matcher.options.evidence)
         return grid
 
-    def _cast_submap(self, log, submap, est, cast=None, bounds=None, evidence="probability"):
-        """The submap's scans (those with ``cast`` true) cast at their estimates in its frame:
-        (grid, (scans, poses in the frame)). Between two optimisations the estimates stay put, so
+    def _cast_submap(self, scans, submap, est, cast=None, bounds=None, evidence="probability"):
+        """The submap's scans (those of ``scans`` with ``cast`` true) cast at their estimates in its
+        frame: (grid, (scan indices, poses in the frame)). Between two optimisations the estimates stay put, so
         the beam counts of a submap cast before are kept (``_counts``) and only its scans not yet
         in them are cast: the same grid, bit for bit (``BeamCounts``), as casting them all.
         ``bounds``: only the grid's cells within that box of the frame (``BeamCounts.grid``);
         ``evidence`` "trinary": its trinary map, made from the counts directly (``BeamCounts.grid``)."""
-        scans = submap.scans if cast is None else [j for j in submap.scans if cast[j]]
+        members = submap.scans if cast is None else [j for j in submap.scans if cast[j]]
         origin = inverse(est[submap.key])
-        poses = np.array([compose(origin, est[j]) for j in scans])
+        poses = np.array([compose(origin, est[j]) for j in members])
         counts, added = self._counts.get(submap.index, (None, set()))
-        if counts is None or not added.issubset(scans):
+        if counts is None or not added.issubset(members):
             counts, added = BeamCounts(resolution=self.options.resolution, model=self._map_model), set()
             self._counts[submap.index] = (counts, added)
-        new = [i for i, j in enumerate(scans) if j not in added]
-        counts.add([log.scans[scans[i]] for i in new], poses[new])
-        added.update(scans[i] for i in new)
-        return counts.grid(bounds, evidence=evidence), (scans, poses)
+        new = [i for i, j in enumerate(members) if j not in added]
+        counts.add([scans[members[i]] for i in new], poses[new])
+        added.update(members[i] for i in new)
+        return counts.grid(bounds, evidence=evidence), (members, poses)
 
     def _member_edge(self, gtsam, graph, submap, k, est):
         """The edge that ties scan ``k`` to the frame of a submap it lies in when no match of ``k``
@@ -585,19 +642,9 @@ class Slam:
                                            self._robust_noise(gtsam, self._odometry_covariance(rel))))
 
     def run(self, log: LaserLog, progress=None) -> SlamResult:
-        """Map ``log`` (its scans' poses are read as odometry); ``progress(k, n)`` after each scan."""
-        self._helpers = [helper for helper in (Helper.start(self._matcher.options)
-                                               for _ in range(self.options.workers)) if helper]
-        try:
-            return self._run(log, progress)
-        finally:
-            for helper in self._helpers:
-                helper.close()
-            self._helpers = []
-
-    def _run(self, log, progress):
-        gtsam = _gtsam()
-        opts = self.options
+        """Map ``log`` (its scans' poses are read as odometry); ``progress(k, n)`` after each scan.
+        The same, bit for bit, as ``add`` for each of its scans and then ``finish``, with the whole
+        log checked first."""
         n = len(log)
         if n == 0:
             raise InvalidOptionError("the log holds no scan")
@@ -612,158 +659,235 @@ class Slam:
             raise InvalidOptionError("the log has no odometry (every scan carries the same pose); the mapping "
                                      "loop needs it for its guesses")
         steps = np.hypot(*np.diff(odo[:, :2], axis=0).T) if n > 1 else np.zeros(0)
-        if len(steps) and steps.max() > opts.max_ray_length:
-            k = int(np.argmax(steps)) + 1
-            raise InvalidOptionError(f"the odometry jumps {steps[k - 1]:.1f} m between scans {k - 1} and {k}, farther "
-                                     f"than a ray reaches (max_ray_length {opts.max_ray_length:g} m): the scans cannot "
-                                     f"overlap, and a submap across the jump would be mostly empty; the odometry is "
-                                     f"broken there (split the log)")
-        half = opts.submap_scans // 2
-        frames = n // half + 2                   # an upper bound on the number of submaps
-        usable = self._usable(log)
-        if not usable.any():                     # before the loop, not when the final map is made
+        if len(steps) and steps.max() > self.options.max_ray_length:
+            self._check_step(int(np.argmax(steps)) + 1, odo[int(np.argmax(steps))], odo[int(np.argmax(steps)) + 1])
+        if not any(self._usable(scan) for scan in log.scans):     # before the loop, not at the final map
             raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
-        castable = usable.copy()                 # scans the open submaps are cast from (see the module doc)
-        seconds = {"scan grids": 0.0, "submap grids": 0.0, "scan matching": 0.0, "loop closing": 0.0,
-                   "optimisation": 0.0, "audit": 0.0, "final map": 0.0}
-        est = np.zeros((n + frames, 3))          # scans' poses, then the submaps' frames (graph keys)
-        est[0] = odo[0]
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*est[0]), gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))))
-        values.insert(0, gtsam.Pose2(*est[0]))
-        keys = [0]
-        solver = _Solver(gtsam, opts.solver)
-        travelled = np.zeros(n + frames)        # odometry path length up to each scan (a frame: its first scan's)
-        submaps, done = [], []
-        self._open_submap(gtsam, graph, values, keys, submaps, done, 0, n, est, travelled)
-        accepted = tried = 0
-        loops, scans, match_parts = [], [], []
-        # submap index -> (BeamCounts, scans counted), since the last optimisation
-        self._counts = {}
+        self.close()
+        self._begin(n)
+        try:
+            for k, scan in enumerate(log.scans):
+                self.add(scan)
+                if progress is not None and k > 0:
+                    progress(k + 1, n)
+            return self.finish()
+        finally:
+            self.close()
+
+    def add(self, scan: Scan) -> np.ndarray:
+        """Map one more scan (its ``pose`` read as odometry; scans in time order): the mapping
+        loop as it runs on a robot. Returns the scan's pose as estimated now (the front end's
+        match, or the odometry's prediction; after an optimisation when this scan completed a
+        submap). ``finish`` ends the run; a scan refused (InvalidOptionError) leaves the run as
+        it was. Not with ``submap_frames`` (its frames' graph keys follow the scans': ``run``)."""
+        scan = _checked_scan(scan)
+        m = self._mapping if self._mapping is not None else self._begin(None)
+        t_add = time.perf_counter()
+        k = len(m.scans)
+        if k and not scan.timestamp > m.scans[-1].timestamp:
+            raise InvalidOptionError(f"the scans' timestamps must increase (the trajectory's TUM file pairs poses by "
+                                     f"time): scan {k} at {scan.timestamp!r} after {m.scans[-1].timestamp!r}")
+        if k:
+            self._check_step(k, m.odo[k - 1], scan.pose)
+        m.grow(k + 1)
+        m.scans.append(scan)
+        m.odo[k] = scan.pose
+        m.usable[k] = m.castable[k] = self._usable(scan)
+        if k == 0:
+            self._first(m)
+        else:
+            self._step(m, k)
+        m.add_seconds.append(time.perf_counter() - t_add)
+        return m.est[k].copy()
+
+    def _check_step(self, k, before, after):
+        step = math.hypot(after[0] - before[0], after[1] - before[1])
+        if step > self.options.max_ray_length:
+            raise InvalidOptionError(f"the odometry jumps {step:.1f} m between scans {k - 1} and {k}, farther than a "
+                                     f"ray reaches (max_ray_length {self.options.max_ray_length:g} m): the scans "
+                                     f"cannot overlap, and a submap across the jump would be mostly empty; the "
+                                     f"odometry is broken there (split the log)")
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(S, 3) the current estimates of the scans added so far (world frame)."""
+        m = self._mapping
+        return np.zeros((0, 3)) if m is None else m.est[:len(m.scans)].copy()
+
+    def _begin(self, n):
+        """A new run; ``n``: the log's length when known (``run``), which ``submap_frames`` needs."""
+        if self.options.submap_frames and n is None:
+            raise InvalidOptionError("submap_frames numbers the submaps' frames after the scans, so it needs the "
+                                     "whole log: use Slam.run")
+        gtsam = _gtsam()
+        self._helpers = [helper for helper in (Helper.start(self._matcher.options)
+                                               for _ in range(self.options.workers)) if helper]
+        self._mapping = _Mapping(gtsam, n, self.options)
+        self._counts = {}             # submap index -> (BeamCounts, scans counted), since the last optimisation
         self._tied = 0                          # loop-closure candidates not matched: already tied
-        target_cast = None                      # (submap, scan, grid): the front end's target as last cast
-        coarse = None                           # its PreparedMap when cast whole (see the module docstring)
-        for k in range(1, n):
-            delta = compose(inverse(odo[k - 1]), odo[k])
-            travelled[k] = travelled[k - 1] + math.hypot(delta[0], delta[1])
-            graph.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*delta), self._odometry_noise(gtsam, delta)))
-            pred = compose(est[k - 1], delta)
-            target = submaps[0]                           # the older open submap
-            guess = compose(inverse(est[target.key]), pred)   # the scan's pose in the target's frame
-            res = None
-            # a scan without one usable reading (or a submap of such scans) is not matched
-            if usable[k] and castable[target.scans].any():
-                t0 = time.perf_counter()
-                scan_grid = scans_to_grid([log.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
-                                          model=self._scan_model, evidence=self._scan_matcher.options.evidence)
-                t1 = time.perf_counter()
-                preparing = 0.0                           # preparing the target: the match's time
-                whole = target_cast is None or target_cast[0] is not target
-                if opts.crop_target:                      # None: the scan cannot land on the submap
-                    cropped = self._submap_grid(log, target, est, castable, footprint_bounds(scan_grid, guess))
-                    target_cast = None if cropped is None else (target, k, cropped)
-                elif whole or k - target_cast[1] >= opts.target_refresh:
-                    target_cast = (target, k, self._submap_grid(log, target, est, castable))
-                if target_cast is not None and target_cast[1] == k:
-                    t = time.perf_counter()
-                    shared = None if whole or not opts.share_coarse else coarse
-                    prepared = self._scan_matcher.prepare(target_cast[2], coarse_from=shared)
-                    coarse = prepared if whole else coarse
-                    preparing = time.perf_counter() - t
-                t2 = time.perf_counter()
-                res = None
-                if target_cast is not None:
-                    self._scan_matcher.prepare(scan_grid)
-                    t3 = time.perf_counter()
-                    res = self._scan_matcher.match(target_cast[2], scan_grid, guess)
-                    match_parts.append((preparing, t3 - t2, res.seconds))
-                    tried += 1
-                seconds["scan grids"] += t1 - t0
-                seconds["submap grids"] += t2 - t1 - preparing
-                seconds["scan matching"] += time.perf_counter() - t2 + preparing
-            verdict = res is not None and scan_accepted(res)
-            gated = verdict and self._agrees_with_odometry(res, guess,
-                                                           est[k - 1], est[target.key], delta)
-            scans.append({"scan": k, "submap": target.index, "pose": None if res is None else res.pose,
+        return self._mapping
+
+    def close(self):
+        """End the run without a result (and the helper processes)."""
+        for helper in self._helpers:
+            helper.close()
+        self._helpers = []
+        self._mapping = None
+
+    def _first(self, m):
+        gtsam = m.gtsam
+        m.est[0] = m.odo[0]
+        prior = gtsam.noiseModel.Diagonal.Sigmas(np.full(3, 1e-6))
+        m.graph.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(*m.est[0]), prior))
+        m.values.insert(0, gtsam.Pose2(*m.est[0]))
+        m.keys.append(0)
+        self._open_submap(m, 0)
+
+    def _step(self, m, k):
+        """Scan ``k`` (after the first): its front-end match, its node and edges, and when it
+        completes the older open submap, that submap's loop closures and an optimisation."""
+        gtsam, opts, est, seconds = m.gtsam, self.options, m.est, m.seconds
+        odo, usable, castable = m.odo, m.usable, m.castable
+        delta = compose(inverse(odo[k - 1]), odo[k])
+        m.travelled[k] = m.travelled[k - 1] + math.hypot(delta[0], delta[1])
+        m.graph.add(gtsam.BetweenFactorPose2(k - 1, k, gtsam.Pose2(*delta), self._odometry_noise(gtsam, delta)))
+        pred = compose(est[k - 1], delta)
+        target = m.submaps[0]                             # the older open submap
+        guess = compose(inverse(est[target.key]), pred)   # the scan's pose in the target's frame
+        res = None
+        # a scan without one usable reading (or a submap of such scans) is not matched
+        if usable[k] and castable[target.scans].any():
+            t0 = time.perf_counter()
+            scan_grid = scans_to_grid([m.scans[k]], np.zeros((1, 3)), resolution=opts.resolution,
+                                      model=self._scan_model, evidence=self._scan_matcher.options.evidence)
+            t1 = time.perf_counter()
+            preparing = 0.0                               # preparing the target: the match's time
+            whole = m.target_cast is None or m.target_cast[0] is not target
+            if opts.crop_target:                          # None: the scan cannot land on the submap
+                cropped = self._submap_grid(m.scans, target, est, castable, footprint_bounds(scan_grid, guess))
+                m.target_cast = None if cropped is None else (target, k, cropped)
+            elif whole or k - m.target_cast[1] >= opts.target_refresh:
+                m.target_cast = (target, k, self._submap_grid(m.scans, target, est, castable))
+            if m.target_cast is not None and m.target_cast[1] == k:
+                t = time.perf_counter()
+                shared = None if whole or not opts.share_coarse else m.coarse
+                prepared = self._scan_matcher.prepare(m.target_cast[2], coarse_from=shared)
+                m.coarse = prepared if whole else m.coarse
+                preparing = time.perf_counter() - t
+            t2 = time.perf_counter()
+            if m.target_cast is not None:
+                self._scan_matcher.prepare(scan_grid)
+                t3 = time.perf_counter()
+                res = self._scan_matcher.match(m.target_cast[2], scan_grid, guess)
+                m.match_parts.append((preparing, t3 - t2, res.seconds))
+                m.tried += 1
+            seconds["scan grids"] += t1 - t0
+            seconds["submap grids"] += t2 - t1 - preparing
+            seconds["scan matching"] += time.perf_counter() - t2 + preparing
+        verdict = res is not None and scan_accepted(res)
+        gated = verdict and self._agrees_with_odometry(res, guess, est[k - 1], est[target.key], delta)
+        m.records.append({"scan": k, "submap": target.index, "pose": None if res is None else res.pose,
                           "accepted": verdict, "edge": gated,
                           "covariance": None if res is None else res.calibrated_covariance})
-            castable[k] = usable[k] and gated             # else only once the graph has placed it
-            if gated:
-                accepted += 1
-                est[k] = compose(est[target.key], res.pose)
-                self._match_edge(gtsam, graph, target.key, k, res)
-            else:
-                est[k] = pred
-            est[k, 2] = wrap_angle(est[k, 2])
-            values.insert(k, gtsam.Pose2(*est[k]))
-            keys.append(k)
-            for s in submaps:
-                s.scans.append(k)
-                if opts.submap_frames and not (gated and s is target):
-                    self._member_edge(gtsam, graph, s, k, est)
-            if k % half == 0:
-                self._open_submap(gtsam, graph, values, keys, submaps, done, k, n, est, travelled)
-            if len(submaps[0].scans) >= opts.submap_scans or k == n - 1:
-                finished = submaps.pop(0)
-                t0 = time.perf_counter()
-                new_loops = self._close_loops(log, finished, done, est, travelled, graph, gtsam, usable,
-                                              [lp for lp in loops if lp["edge"]])
-                loops += new_loops
-                done.append(finished)
-                t1 = time.perf_counter()
-                seconds["loop closing"] += t1 - t0
-                est[keys] = solver.optimise(graph, values, est, keys)
-                target_cast = None                       # cast again at the new estimates
-                self._counts = {}
-                castable[:k + 1] = usable[:k + 1]        # the graph has placed every scan so far
-                values = _values(gtsam, est, keys)
-                seconds["optimisation"] += time.perf_counter() - t1
-            if progress is not None:
-                progress(k + 1, n)
+        castable[k] = usable[k] and gated                 # else only once the graph has placed it
+        if gated:
+            m.accepted += 1
+            est[k] = compose(est[target.key], res.pose)
+            self._match_edge(gtsam, m.graph, target.key, k, res)
+        else:
+            est[k] = pred
+        est[k, 2] = wrap_angle(est[k, 2])
+        m.values.insert(k, gtsam.Pose2(*est[k]))
+        m.keys.append(k)
+        for s in m.submaps:
+            s.scans.append(k)
+            if opts.submap_frames and not (gated and s is target):
+                self._member_edge(gtsam, m.graph, s, k, est)
+        if k % (opts.submap_scans // 2) == 0:
+            self._open_submap(m, k)
+        m.closed = len(m.submaps[0].scans) >= opts.submap_scans
+        if m.closed:
+            self._complete(m)
+
+    def _complete(self, m):
+        """The older open submap is complete: its loop closures, then an optimisation."""
+        finished = m.submaps.pop(0)
+        k = len(m.scans) - 1
         t0 = time.perf_counter()
-        est[keys] = _optimise(gtsam, graph, values, keys)
-        values = _values(gtsam, est, keys)
+        m.loops += self._close_loops(m.scans, finished, m.done, m.est, m.travelled, m.graph, m.gtsam, m.usable,
+                                     [lp for lp in m.loops if lp["edge"]])
+        m.done.append(finished)
+        t1 = time.perf_counter()
+        m.seconds["loop closing"] += t1 - t0
+        m.est[m.keys] = m.solver.optimise(m.graph, m.values, m.est, m.keys)
+        m.target_cast = None                              # cast again at the new estimates
+        self._counts = {}
+        m.castable[:k + 1] = m.usable[:k + 1]             # the graph has placed every scan so far
+        m.values = _values(m.gtsam, m.est, m.keys)
+        m.seconds["optimisation"] += time.perf_counter() - t1
+
+    def finish(self) -> SlamResult:
+        """End the run of ``add``: the last submap's loop closures, a last optimisation, the
+        ``audit``, the global map. The mapper is then ready for another run."""
+        m = self._mapping
+        try:
+            if m is None or not m.scans:
+                raise InvalidOptionError("no scan was added: nothing to map")
+            n = len(m.scans)
+            if not m.usable[:n].any():
+                raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
+            return self._finish(m, n)
+        finally:
+            self.close()
+
+    def _finish(self, m, n):
+        gtsam, opts, seconds = m.gtsam, self.options, m.seconds
+        if n > 1 and not m.closed:                        # the older open submap ends with the log
+            self._complete(m)
+        est, keys = m.est, m.keys
+        t0 = time.perf_counter()
+        est[keys] = _optimise(gtsam, m.graph, m.values, keys)
+        m.values = _values(gtsam, est, keys)
         t1 = time.perf_counter()
         seconds["optimisation"] += t1 - t0
         disagreements = None
         if opts.audit is not None:
-            disagreements = self.audit(log, done, est)
+            disagreements = self.audit(m.scans, m.done, est)
             if opts.audit == "repair":
-                repairs = self._repair(log, done, est, travelled, graph, gtsam, disagreements, loops)
+                repairs = self._repair(m.scans, m.done, est, m.travelled, m.graph, gtsam, disagreements, m.loops)
                 if repairs:
-                    est[keys] = _optimise(gtsam, graph, values, keys)
-                    values = _values(gtsam, est, keys)
+                    est[keys] = _optimise(gtsam, m.graph, m.values, keys)
+                    m.values = _values(gtsam, est, keys)
             t0, t1 = t1, time.perf_counter()
             seconds["audit"] += t1 - t0
-        world = scans_to_grid(log.scans, est[:n], resolution=opts.resolution, model=self._map_model)
+        world = scans_to_grid(m.scans, est[:n], resolution=opts.resolution, model=self._map_model)
         seconds["final map"] += time.perf_counter() - t1
-        frame_keys = [sub.key for sub in sorted(done + submaps, key=lambda sub: sub.index)]
-        parts = np.array(match_parts, dtype=np.float64).reshape(-1, 3)
-        return SlamResult(poses=est[:n], timestamps=log.timestamps, map=world, graph=graph, values=values,
-                          frames=est[frame_keys],
-                          scan_matches=(accepted, tried), loops=loops, scans=scans, seconds=seconds, options=opts,
-                          match_seconds=parts.sum(axis=1), match_parts=parts, loops_tied=self._tied,
-                          disagreements=disagreements)
+        frame_keys = [sub.key for sub in sorted(m.done + m.submaps, key=lambda sub: sub.index)]
+        parts = np.array(m.match_parts, dtype=np.float64).reshape(-1, 3)
+        return SlamResult(poses=est[:n].copy(), timestamps=np.array([s.timestamp for s in m.scans], dtype=np.float64),
+                          map=world, graph=m.graph, values=m.values, frames=est[frame_keys],
+                          scan_matches=(m.accepted, m.tried), loops=m.loops, scans=m.records, seconds=seconds,
+                          options=opts, match_seconds=parts.sum(axis=1), match_parts=parts, loops_tied=self._tied,
+                          disagreements=disagreements, add_seconds=np.array(m.add_seconds))
 
-    def _open_submap(self, gtsam, graph, values, keys, submaps, done, k, n, est, travelled):
-        """A new submap from scan ``k`` on. With ``submap_frames`` its frame (graph key ``n`` + its
-        index) starts at the scan's estimate, tied to it by a member edge; else its frame is the
-        scan's own node."""
-        index = len(done) + len(submaps)
-        submap = _Submap(index, k, n + index if self.options.submap_frames else k)
+    def _open_submap(self, m, k):
+        """A new submap from scan ``k`` on. With ``submap_frames`` its frame (graph key: the log's
+        length + its index) starts at the scan's estimate, tied to it by a member edge; else its
+        frame is the scan's own node."""
+        index = len(m.done) + len(m.submaps)
+        submap = _Submap(index, k, m.frame_keys + index if self.options.submap_frames else k)
         submap.scans.append(k)
         if self.options.submap_frames:
-            est[submap.key] = est[k]
-            travelled[submap.key] = travelled[k]
-            values.insert(submap.key, gtsam.Pose2(*est[k]))
-            keys.append(submap.key)
-            self._member_edge(gtsam, graph, submap, k, est)
-        submaps.append(submap)
+            m.est[submap.key] = m.est[k]
+            m.travelled[submap.key] = m.travelled[k]
+            m.values.insert(submap.key, m.gtsam.Pose2(*m.est[k]))
+            m.keys.append(submap.key)
+            self._member_edge(m.gtsam, m.graph, submap, k, m.est)
+        m.submaps.append(submap)
 
-    def _cast_final(self, log, submap, est):
+    def _cast_final(self, scans, submap, est):
         """Cast a complete submap (all its scans) at the current estimates, for loop closures."""
-        submap.final_grid, submap.final_poses = self._cast_submap(log, submap, est)
+        submap.final_grid, submap.final_poses = self._cast_submap(scans, submap, est)
         submap.footprint = Footprint(submap.final_grid)
 
     def _moved_since_cast(self, submap, est) -> bool:
@@ -814,12 +938,12 @@ class Slam:
             edges.append(loop)
         return loop["edge"]
 
-    def _close_loops(self, log, submap, done, est, travelled, graph, gtsam, usable, edges):
+    def _close_loops(self, scans, submap, done, est, travelled, graph, gtsam, usable, edges):
         opts = self.options
         out = []
         if not usable[submap.scans].any():
             return out                                   # final_grid stays None: never matched
-        self._cast_final(log, submap, est)
+        self._cast_final(scans, submap, est)
         shared = set(submap.scans)
         candidates = []                                  # (other, guess, window)
         for other in done:
@@ -834,7 +958,7 @@ class Slam:
             if overlap_share(other.footprint, submap.footprint, guess) < LOOP_MIN_OVERLAP:
                 continue
             if opts.loop_ties is None and self._moved_since_cast(other, est):
-                self._cast_final(log, other, est)         # now: a helper may take it
+                self._cast_final(scans, other, est)         # now: a helper may take it
             window = None
             if opts.loop_search is not None and drift > opts.loop_search:
                 window = (min(drift, LOOP_SEARCH_MAX), min(drift, LOOP_SEARCH_MAX) / LOOP_SEARCH_ARM)
@@ -852,7 +976,7 @@ class Slam:
                     self._tied += 1
                     continue
                 if self._moved_since_cast(other, est):
-                    self._cast_final(log, other, est)
+                    self._cast_final(scans, other, est)
                 res = self._matcher.match(other.final_grid, submap.final_grid, guess, search_window=window)
                 matched += 1
             loop = _loop_record(other, submap, guess, window, res, helper=index in helped, repair=False)
@@ -862,7 +986,7 @@ class Slam:
                 self._match_edge(gtsam, graph, a, b, res)
         return out
 
-    def audit(self, log, submaps, est) -> list:
+    def audit(self, scans, submaps, est) -> list:
         """The pairs of ``submaps`` (complete) that share no scan and disagree at the estimates
         ``est`` (see ``DISAGREE_CONFLICT``): each as cast at ``est`` in its frame (again when the
         estimates moved a scan in it, ``_moved_since_cast``) and its walls
@@ -873,7 +997,7 @@ class Slam:
         usable = [sub for sub in submaps if sub.final_grid is not None]
         for sub in usable:
             if self._moved_since_cast(sub, est):
-                self._cast_final(log, sub, est)
+                self._cast_final(scans, sub, est)
         # the finest level only (the coarser ones were 40 % of the preparation; a repair's match
         # makes them when it needs them)
         walls = {sub.index: self._matcher.prepare(sub.final_grid, levels=1).wall_distance for sub in usable}
@@ -893,7 +1017,7 @@ class Slam:
                                 "conflict": conflict, "repaired": False})
         return out
 
-    def _repair(self, log, submaps, est, travelled, graph, gtsam, disagreements, loops) -> int:
+    def _repair(self, scans, submaps, est, travelled, graph, gtsam, disagreements, loops) -> int:
         """Match each disagreeing pair that no loop closure in the graph joins after a search around
         the graph's relative pose (``audit``): each match goes into ``loops``, the accepted ones
         that pass the neighbours' vote (``loop_consistency``) into the graph. Returns how many."""

@@ -864,3 +864,67 @@ def test_submaps_free_margin_removes_the_front_ends_forward_bias(simulated):
 
     cut, uncut = mean_forward(options.free_margin), mean_forward(0.0)
     assert uncut > 0.003 and abs(cut) < uncut / 2, (cut, uncut)
+
+
+def test_scans_added_one_at_a_time_map_as_the_robot_goes(simulated, mapped):
+    """``Slam.add`` per scan, then ``finish``: the run of the whole log, bit for bit. Each scan's
+    pose as returned when it came (before later loop closures moved it) tracks the truth far
+    better than the odometry (the simulated truth: an independent source), and ``poses`` shows
+    the estimates of the scans so far."""
+    slam = Slam()
+    live = []
+    for k, scan in enumerate(simulated.log.scans):
+        live.append(slam.add(scan))
+        if k == 50:
+            now = slam.poses
+            assert now.shape == (51, 3) and np.array_equal(now[-1], live[-1])
+    result = slam.finish()
+    assert np.array_equal(result.poses, mapped.poses) and np.array_equal(result.frames, mapped.frames)
+    assert np.array_equal(result.map.prob, mapped.map.prob, equal_nan=True)
+    assert len(result.add_seconds) == len(simulated.log) and np.all(result.add_seconds > 0)
+    online = trajectory_errors(np.array(live), simulated.truth)
+    odometry = trajectory_errors(simulated.log.poses, simulated.truth)
+    assert online["ate_m"] <= odometry["ate_m"] / 3, (online, odometry)
+    assert slam.poses.shape == (0, 3)                     # finished: ready for another run
+
+
+def test_a_refused_scan_leaves_the_run_as_it_was(short_run):
+    """A scan ``add`` refuses (InvalidOptionError) changes nothing: the run then goes on as if it
+    never came (the same bits as a fresh mapper given only the good scans)."""
+    scans = short_run.log.scans
+    reference = Slam().run(short_run.log)
+    slam = Slam()
+    for k, scan in enumerate(scans):
+        if k == 9:
+            bad = [dataclasses.replace(scan, pose=np.array([np.nan, 0.0, 0.0])),
+                   dataclasses.replace(scan, pose=np.zeros(2)),
+                   dataclasses.replace(scan, ranges=scan.ranges[:-1]),
+                   dataclasses.replace(scan, ranges=np.array(["a"] * len(scan.ranges))),
+                   dataclasses.replace(scan, timestamp=scans[k - 1].timestamp),
+                   dataclasses.replace(scan, timestamp=float("nan")),
+                   dataclasses.replace(scan, max_range=-1.0),
+                   dataclasses.replace(scan, pose=scan.pose + np.array([100.0, 0.0, 0.0])),
+                   "a scan"]
+            for wrong in bad:
+                with pytest.raises(InvalidOptionError):
+                    slam.add(wrong)
+            assert len(slam.poses) == 9
+        slam.add(scan)
+    result = slam.finish()
+    assert np.array_equal(result.poses, reference.poses)
+
+
+def test_finish_needs_a_usable_scan_and_add_refuses_submap_frames(short_run):
+    slam = Slam()
+    with pytest.raises(InvalidOptionError, match="no scan was added"):
+        slam.finish()
+    blind = dataclasses.replace(short_run.log.scans[0], ranges=np.full(len(short_run.log.scans[0].ranges), np.nan))
+    slam.add(blind)
+    with pytest.raises(InvalidOptionError, match="no usable beam"):
+        slam.finish()
+    with pytest.raises(InvalidOptionError, match="submap_frames"):
+        Slam(submap_frames=True).add(short_run.log.scans[0])
+    # one scan: its odometry pose, its map
+    slam.add(short_run.log.scans[0])
+    one = slam.finish()
+    assert np.array_equal(one.poses, short_run.log.poses[:1]) and np.isfinite(one.map.prob).any()
