@@ -73,9 +73,16 @@ that no loop closure joins is matched after a search around the graph's relative
 accepted matches enter the graph as loop closures before a last optimisation (a derailed aces run,
 1.30 m, came back at 0.08 m; docs/slam.md).
 
+Scan by scan. ``Slam.add(scan)`` runs the loop for one more scan, as on a robot, and returns its
+pose as estimated then; ``Slam.finish()`` ends the run (the last submap's loop closures, the last
+optimisation, the audit, the map). ``Slam.run(log)`` checks the whole log first, then does exactly
+that. Everything happens in the caller's thread: a scan that completes a submap waits for its loop
+closures and an optimisation (``SlamResult.add_seconds``; bench/SLAM.md gives each log's spread).
+
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
-poses are the laser's (x, y, theta), metres and radians. ``Slam.run`` returns every scan's pose.
-Graph keys: scan k is key k; submap i's frame is key S + i (S scans).
+poses are the laser's (x, y, theta), metres and radians. ``SlamResult.poses``: every scan's pose.
+Graph keys: scan k is key k; submap i's frame is key S + i (S scans; ``submap_frames`` only, which
+therefore needs ``run``).
 """
 
 import math
@@ -89,7 +96,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from ._errors import InvalidOptionError, shown
-from ._grid import cells
+from ._grid import GridMap, cells
 from ._helper import Helper
 from ._matcher import Matcher
 from ._options import MatchOptions
@@ -422,7 +429,7 @@ class SlamOptions:
 
 @dataclass
 class SlamResult:
-    """What ``Slam.run`` found.
+    """What ``Slam.run`` (or ``Slam.finish``) found.
 
     poses : (S, 3) every scan's optimised pose in the world frame.
     timestamps : (S,) the scans' own timestamps.
@@ -446,6 +453,8 @@ class SlamResult:
         scan included.
     match_parts : (T, 3) the same in parts: preparing the target, preparing the scan, and the
         match of the two prepared maps (``MatchResult.seconds``), seconds.
+    add_seconds : (S,) each scan's ``Slam.add``, seconds (its front-end match, and when it
+        completed a submap that submap's loop closures and an optimisation).
     disagreements : with ``audit``, one dict per pair of complete submaps that disagreed at the
         poses optimised before the audit (submaps, walls compared, agreement, conflict, repaired:
         whether a repair closure now joins them; with "repair" also joined: whether a loop closure
@@ -713,6 +722,14 @@ class Slam:
         """(S, 3) the current estimates of the scans added so far (world frame)."""
         m = self._mapping
         return np.zeros((0, 3)) if m is None else m.est[:len(m.scans)].copy()
+
+    def current_map(self) -> GridMap:
+        """The map of the scans added so far, each cast at its current estimate (``finish``'s
+        global map, made now: about 0.2-0.7 ms a scan on the shared logs)."""
+        m = self._mapping
+        if m is None or not m.usable[:len(m.scans)].any():
+            raise InvalidOptionError("no usable scan was added: no map yet")
+        return scans_to_grid(m.scans, m.est[:len(m.scans)], resolution=self.options.resolution, model=self._map_model)
 
     def _begin(self, n):
         """A new run; ``n``: the log's length when known (``run``), which ``submap_frames`` needs."""
@@ -1316,6 +1333,11 @@ def report(result: SlamResult, source: str = "") -> str:
         target, scan, match = 1e3 * np.median(result.match_parts, axis=0)
         lines += [f"Front-end match, median: {1e3 * np.median(result.match_seconds):.1f} ms (preparing the target "
                   f"{target:.1f} ms, the scan {scan:.1f} ms, matching the prepared maps {match:.1f} ms).", ""]
+    if result.add_seconds is not None and len(result.add_seconds):
+        median, high, top = 1e3 * np.percentile(result.add_seconds, [50, 99, 100])
+        lines += [f"Each scan as it came (``Slam.add``): median {median:.1f} ms, 99th percentile {high:.1f} ms, "
+                  f"max {top:.1f} ms (a scan that completes a submap waits for its loop closures and an "
+                  f"optimisation); {np.mean(result.add_seconds > 0.025):.1%} of the scans over 25 ms.", ""]
     lines += ["Options:", "", "```", repr(result.options), "```", ""]
     return "\n".join(lines)
 

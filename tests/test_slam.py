@@ -928,3 +928,20 @@ def test_finish_needs_a_usable_scan_and_add_refuses_submap_frames(short_run):
     slam.add(short_run.log.scans[0])
     one = slam.finish()
     assert np.array_equal(one.poses, short_run.log.poses[:1]) and np.isfinite(one.map.prob).any()
+
+
+def test_the_map_so_far_is_the_scans_so_far_at_their_estimates(short_run):
+    """``current_map`` mid-run: the scans added so far cast at ``poses`` (``scans_to_grid``, the
+    caster the final map uses, given the estimates independently)."""
+    from taichi_match.scans import SensorModel, scans_to_grid
+
+    slam = Slam()
+    with pytest.raises(InvalidOptionError, match="no usable scan"):
+        slam.current_map()
+    for scan in short_run.log.scans[:25]:
+        slam.add(scan)
+    model = SensorModel(max_ray_length=slam.options.max_ray_length, free_margin=slam.options.free_margin)
+    expected = scans_to_grid(short_run.log.scans[:25], slam.poses, resolution=slam.options.resolution, model=model)
+    now = slam.current_map()
+    assert now.shape == expected.shape and np.array_equal(now.prob, expected.prob, equal_nan=True)
+    assert np.isfinite(now.prob).sum() > 1000
