@@ -21,6 +21,7 @@ from ._errors import (
     LogFormatError,
     MapFileError,
     MapFormatError,
+    SlamRunError,
     TaichiMatchError,
 )
 from ._grid import GridMap
@@ -38,7 +39,7 @@ __all__ = [
     "Hypothesis", "Status",
     "CALIBRATED_COVARIANCE_SCALE",
     "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
-    "MapFileError", "MapFormatError", "LogFileError", "LogFormatError",
+    "MapFileError", "MapFormatError", "LogFileError", "LogFormatError", "SlamRunError",
     "compose", "inverse", "transform_points", "wrap_angle",
 ]
 

@@ -3,7 +3,7 @@
 import reprlib
 
 __all__ = ["shown", "TaichiMatchError", "InvalidMapError", "InvalidPoseError", "InvalidOptionError", "EngineError",
-           "MapFileError", "MapFormatError", "LogFileError", "LogFormatError"]
+           "MapFileError", "MapFormatError", "LogFileError", "LogFormatError", "SlamRunError"]
 
 
 class TaichiMatchError(Exception):
@@ -67,3 +67,8 @@ def shown(value) -> str:
 _SHOWN = reprlib.Repr()
 _SHOWN.maxlevel, _SHOWN.maxlist, _SHOWN.maxtuple, _SHOWN.maxdict = 2, 6, 6, 6
 _SHOWN.maxstring, _SHOWN.maxother, _SHOWN.maxlong = 120, 120, 60
+
+
+class SlamRunError(TaichiMatchError, RuntimeError):
+    """A run of the mapping loop (``slam.Slam.add``) cannot go on: an error broke it part-way, or
+    another run is under way on the same mapper."""

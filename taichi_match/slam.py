@@ -95,14 +95,14 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 
-from ._errors import InvalidOptionError, shown
+from ._errors import InvalidOptionError, SlamRunError, shown
 from ._grid import GridMap, cells
 from ._helper import Helper
 from ._matcher import Matcher
 from ._options import MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT, MIN_WALLS, compare_walls, placed_walls
-from .logs import LaserLog, Scan
+from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan
 from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
 
 __all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "loop_summary",
@@ -159,6 +159,9 @@ LOOP_SEARCH_MAX = 2.5
 DISAGREE_AGREEMENT = 0.25
 DISAGREE_CONFLICT = 0.5
 AUDITS = (None, "report", "repair")
+NO_BEAM = "no usable beam in the scans (all readings invalid)"
+NO_ODOMETRY = ("the log has no odometry (every scan carries the same pose); the mapping loop needs it for its "
+               "guesses")
 # With ``crop_target``, the front end's target is cast only within the box the scan's grid covers
 # at the guess, widened by this many metres plus this many radians times the farthest corner of
 # the scan's grid from the scan (where a rotation moves it most): a match that moves farther from
@@ -518,6 +521,7 @@ class _Mapping:
         self.target_cast = None                   # (submap, scan, grid): the front end's target as last cast
         self.coarse = None                        # its PreparedMap when cast whole (``share_coarse``)
         self.closed = False                       # whether the latest scan completed a submap
+        self.broken = None                        # what broke the run part-way through a scan
 
     def grow(self, size):
         """Room for ``size`` scans (doubling)."""
@@ -530,20 +534,48 @@ class _Mapping:
 
 
 def _checked_scan(scan) -> Scan:
-    """``scan`` if ``Slam.add`` can map it: else InvalidOptionError saying why."""
+    """A copy of ``scan`` that ``Slam.add`` can map and keep (float64 arrays of its own, read-only:
+    a driver may reuse its buffers), else InvalidOptionError saying why. Poses beyond the CARMEN
+    reader's bounds (``logs.MAX_COORDINATE`` m, ``logs.MAX_ANGLE`` rad) are refused as it refuses them."""
     if not isinstance(scan, Scan):
         raise InvalidOptionError(f"a scan must be a taichi_match.logs.Scan; got {type(scan).__name__}")
-    pose, ranges, angles = (np.asarray(v) for v in (scan.pose, scan.ranges, scan.angles))
-    if pose.shape != (3,) or pose.dtype.kind not in "iuf" or not np.all(np.isfinite(pose)):
-        raise InvalidOptionError(f"a scan's pose must be three finite numbers (x, y, theta); got {shown(scan.pose)}")
-    if ranges.ndim != 1 or ranges.shape != angles.shape or not {ranges.dtype.kind, angles.dtype.kind} <= set("iuf"):
-        raise InvalidOptionError(f"a scan's ranges and angles must be numbers, 1-D of one length; got shapes "
-                                 f"{ranges.shape} and {angles.shape}")
-    if not (isinstance(scan.timestamp, (int, float, np.number)) and math.isfinite(scan.timestamp)):
+    pose, ranges, angles = (_floats(v) for v in (scan.pose, scan.ranges, scan.angles))
+    if (pose is None or pose.shape != (3,) or not np.all(np.isfinite(pose))
+            or np.abs(pose[:2]).max() > MAX_COORDINATE or abs(pose[2]) > MAX_ANGLE):
+        raise InvalidOptionError(f"a scan's pose must be three finite numbers (x, y, theta) within "
+                                 f"{MAX_COORDINATE:g} m and {MAX_ANGLE:g} rad; got {shown(scan.pose)}")
+    if ranges is None or angles is None or ranges.ndim != 1 or ranges.shape != angles.shape:
+        raise InvalidOptionError(f"a scan's ranges and angles must be real numbers, 1-D of one length; got "
+                                 f"{shown(scan.ranges)} and {shown(scan.angles)}")
+    if not np.all(np.isfinite(angles)):
+        raise InvalidOptionError("a scan's angles must be finite")
+    timestamp, max_range = _real(scan.timestamp), _real(scan.max_range)
+    if timestamp is None or not math.isfinite(timestamp):
         raise InvalidOptionError(f"a scan's timestamp must be a finite number; got {shown(scan.timestamp)}")
-    if not (isinstance(scan.max_range, (int, float, np.number)) and scan.max_range > 0):
+    if max_range is None or not max_range > 0:
         raise InvalidOptionError(f"a scan's max_range must be a positive number; got {shown(scan.max_range)}")
-    return scan
+    for array in (pose, ranges, angles):
+        array.flags.writeable = False
+    return Scan(timestamp=timestamp, ranges=ranges, angles=angles, pose=pose, max_range=max_range)
+
+
+def _real(value) -> Optional[float]:
+    """``value`` as a float if it is a real number (not a bool, not complex) that a float holds."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return None
+    try:
+        return float(value)
+    except OverflowError:
+        return None
+
+
+def _floats(values) -> Optional[np.ndarray]:
+    """``values`` as a new float64 array if they are real numbers (not bools, not complex)."""
+    try:
+        array = np.array(values)
+    except (TypeError, ValueError, OverflowError):
+        return None
+    return array.astype(np.float64) if array.dtype.kind in "iuf" else None
 
 
 def _gtsam():
@@ -652,31 +684,39 @@ class Slam:
 
     def run(self, log: LaserLog, progress=None) -> SlamResult:
         """Map ``log`` (its scans' poses are read as odometry); ``progress(k, n)`` after each scan.
-        The same, bit for bit, as ``add`` for each of its scans and then ``finish``, with the whole
-        log checked first."""
-        n = len(log)
+        The whole log is checked first (each scan as ``add`` checks it, and the log as a whole:
+        not empty, some odometry, some usable beam); then the same, bit for bit, as ``add`` for
+        each scan and ``finish``."""
+        if not isinstance(log, LaserLog):
+            raise InvalidOptionError(f"the log must be a taichi_match.logs.LaserLog; got {type(log).__name__}")
+        if self._mapping is not None:
+            raise SlamRunError("a run of Slam.add is under way on this mapper: finish or close it first")
+        scans = []
+        for k, scan in enumerate(log.scans):
+            try:
+                scans.append(_checked_scan(scan))
+            except InvalidOptionError as exc:
+                raise InvalidOptionError(f"scan {k}: {exc}") from None
+        n = len(scans)
         if n == 0:
             raise InvalidOptionError("the log holds no scan")
-        odo = log.poses
-        if not np.all(np.isfinite(odo)):
-            raise InvalidOptionError("the log's odometry poses are not all finite")
-        stamps = log.timestamps
+        odo = np.array([scan.pose for scan in scans])
+        stamps = np.array([scan.timestamp for scan in scans])
         if n > 1 and not np.all(np.diff(stamps) > 0):
             raise InvalidOptionError("the scans' timestamps must increase (the trajectory's TUM file pairs poses "
                                      "by time)")
         if n > 1 and np.all(odo == odo[0]):
-            raise InvalidOptionError("the log has no odometry (every scan carries the same pose); the mapping "
-                                     "loop needs it for its guesses")
+            raise InvalidOptionError(NO_ODOMETRY)
         steps = np.hypot(*np.diff(odo[:, :2], axis=0).T) if n > 1 else np.zeros(0)
         if len(steps) and steps.max() > self.options.max_ray_length:
-            self._check_step(int(np.argmax(steps)) + 1, odo[int(np.argmax(steps))], odo[int(np.argmax(steps)) + 1])
-        if not any(self._usable(scan) for scan in log.scans):     # before the loop, not at the final map
-            raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
-        self.close()
+            k = int(np.argmax(steps)) + 1
+            self._check_step(k, odo[k - 1], odo[k])
+        if not any(self._usable(scan) for scan in scans):     # before the loop, not at the final map
+            raise InvalidOptionError(NO_BEAM)
         self._begin(n)
         try:
-            for k, scan in enumerate(log.scans):
-                self.add(scan)
+            for k, scan in enumerate(scans):
+                self._add(scan)
                 if progress is not None and k > 0:
                     progress(k + 1, n)
             return self.finish()
@@ -687,10 +727,16 @@ class Slam:
         """Map one more scan (its ``pose`` read as odometry; scans in time order): the mapping
         loop as it runs on a robot. Returns the scan's pose as estimated now (the front end's
         match, or the odometry's prediction; after an optimisation when this scan completed a
-        submap). ``finish`` ends the run; a scan refused (InvalidOptionError) leaves the run as
-        it was. Not with ``submap_frames`` (its frames' graph keys follow the scans': ``run``)."""
-        scan = _checked_scan(scan)
+        submap). ``finish`` ends the run. A scan refused (InvalidOptionError: see
+        ``_checked_scan``, and timestamps that do not increase, an odometry jump beyond a ray's
+        reach) leaves the run as it was; any other error part-way breaks the run (then
+        SlamRunError until ``close``). The scan is copied: its arrays may be reused. Not with
+        ``submap_frames`` (its frames' graph keys follow the scans': ``run``)."""
+        return self._add(_checked_scan(scan))
+
+    def _add(self, scan):
         m = self._mapping if self._mapping is not None else self._begin(None)
+        self._check_unbroken()
         t_add = time.perf_counter()
         k = len(m.scans)
         if k and not scan.timestamp > m.scans[-1].timestamp:
@@ -698,20 +744,28 @@ class Slam:
                                      f"time): scan {k} at {scan.timestamp!r} after {m.scans[-1].timestamp!r}")
         if k:
             self._check_step(k, m.odo[k - 1], scan.pose)
-        m.grow(k + 1)
-        m.scans.append(scan)
-        m.odo[k] = scan.pose
-        m.usable[k] = m.castable[k] = self._usable(scan)
-        if k == 0:
-            self._first(m)
-        else:
-            self._step(m, k)
+        try:
+            m.grow(k + 1)
+            m.scans.append(scan)
+            m.odo[k] = scan.pose
+            m.usable[k] = m.castable[k] = self._usable(scan)
+            if k == 0:
+                self._first(m)
+            else:
+                self._step(m, k)
+        except BaseException as exc:                     # the run is half-way through this scan
+            m.broken = f"{type(exc).__name__} at scan {k}: {exc}"
+            raise
         m.add_seconds.append(time.perf_counter() - t_add)
         return m.est[k].copy()
 
+    def _check_unbroken(self):
+        if self._mapping is not None and self._mapping.broken:
+            raise SlamRunError(f"the run was broken part-way by {self._mapping.broken}; close() it and start again")
+
     def _check_step(self, k, before, after):
         step = math.hypot(after[0] - before[0], after[1] - before[1])
-        if step > self.options.max_ray_length:
+        if not step <= self.options.max_ray_length:
             raise InvalidOptionError(f"the odometry jumps {step:.1f} m between scans {k - 1} and {k}, farther than a "
                                      f"ray reaches (max_ray_length {self.options.max_ray_length:g} m): the scans "
                                      f"cannot overlap, and a submap across the jump would be mostly empty; the "
@@ -726,6 +780,7 @@ class Slam:
     def current_map(self) -> GridMap:
         """The map of the scans added so far, each cast at its current estimate (``finish``'s
         global map, made now: about 0.2-0.7 ms a scan on the shared logs)."""
+        self._check_unbroken()
         m = self._mapping
         if m is None or not m.usable[:len(m.scans)].any():
             raise InvalidOptionError("no usable scan was added: no map yet")
@@ -845,14 +900,19 @@ class Slam:
 
     def finish(self) -> SlamResult:
         """End the run of ``add``: the last submap's loop closures, a last optimisation, the
-        ``audit``, the global map. The mapper is then ready for another run."""
+        ``audit``, the global map; the mapper is then ready for another run. Refused
+        (InvalidOptionError, the run kept: more scans may come) without a scan, without one usable
+        beam, or when every scan carries the same odometry pose (as ``run`` refuses such a log)."""
+        self._check_unbroken()
         m = self._mapping
+        if m is None or not m.scans:
+            raise InvalidOptionError("no scan was added: nothing to map")
+        n = len(m.scans)
+        if not m.usable[:n].any():
+            raise InvalidOptionError(NO_BEAM)
+        if n > 1 and np.all(m.odo[:n] == m.odo[0]):
+            raise InvalidOptionError(NO_ODOMETRY)
         try:
-            if m is None or not m.scans:
-                raise InvalidOptionError("no scan was added: nothing to map")
-            n = len(m.scans)
-            if not m.usable[:n].any():
-                raise InvalidOptionError("no usable beam in the scans (all readings invalid)")
             return self._finish(m, n)
         finally:
             self.close()

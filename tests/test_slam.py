@@ -904,6 +904,15 @@ def test_a_refused_scan_leaves_the_run_as_it_was(short_run):
                    dataclasses.replace(scan, timestamp=float("nan")),
                    dataclasses.replace(scan, max_range=-1.0),
                    dataclasses.replace(scan, pose=scan.pose + np.array([100.0, 0.0, 0.0])),
+                   dataclasses.replace(scan, pose=np.array([-1.7e308, 0.0, 0.0])),
+                   dataclasses.replace(scan, pose=scan.pose + np.array([0.0, 0.0, 2e3])),
+                   dataclasses.replace(scan, angles=np.where(np.arange(len(scan.angles)) == 5, np.nan, scan.angles)),
+                   dataclasses.replace(scan, ranges=scan.ranges.astype(complex)),
+                   dataclasses.replace(scan, max_range=10**400),
+                   dataclasses.replace(scan, max_range=True),
+                   dataclasses.replace(scan, timestamp=10**400),
+                   dataclasses.replace(scan, timestamp=None),
+                   dataclasses.replace(scan, max_range=complex(20.0, 0.0)),
                    "a scan"]
             for wrong in bad:
                 with pytest.raises(InvalidOptionError):
@@ -924,6 +933,8 @@ def test_finish_needs_a_usable_scan_and_add_refuses_submap_frames(short_run):
         slam.finish()
     with pytest.raises(InvalidOptionError, match="submap_frames"):
         Slam(submap_frames=True).add(short_run.log.scans[0])
+    slam.add(short_run.log.scans[1])                # the refused finish kept the run
+    assert len(slam.finish().poses) == 2
     # one scan: its odometry pose, its map
     slam.add(short_run.log.scans[0])
     one = slam.finish()
@@ -945,3 +956,76 @@ def test_the_map_so_far_is_the_scans_so_far_at_their_estimates(short_run):
     now = slam.current_map()
     assert now.shape == expected.shape and np.array_equal(now.prob, expected.prob, equal_nan=True)
     assert np.isfinite(now.prob).sum() > 1000
+
+
+def test_an_error_part_way_through_a_scan_breaks_the_run_loudly(short_run):
+    """An error inside ``add`` after the scan was taken (here the front end's matcher failing
+    once) leaves a run that cannot be trusted: every later ``add``, ``current_map`` and ``finish``
+    says so (SlamRunError) until ``close``, after which the mapper maps anew, the same bits as a
+    fresh one."""
+    from taichi_match import SlamRunError
+
+    scans = short_run.log.scans
+    slam = Slam()
+    match = slam._scan_matcher.match
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            raise RuntimeError("the matcher failed")
+        return match(*args, **kwargs)
+
+    slam._scan_matcher.match = failing
+    for scan in scans[:5]:
+        slam.add(scan)
+    with pytest.raises(RuntimeError, match="matcher failed"):
+        slam.add(scans[5])
+    for broken in (lambda: slam.add(scans[6]), slam.finish, slam.current_map,
+                   lambda: slam.run(short_run.log)):
+        with pytest.raises(SlamRunError):
+            broken()
+    slam.close()
+    slam._scan_matcher.match = match
+    assert np.array_equal(slam.run(short_run.log).poses, Slam().run(short_run.log).poses)
+
+
+def test_run_checks_every_scan_before_mapping_and_add_copies_the_scan(short_run):
+    scans = list(short_run.log.scans)
+    for k, bad in ((len(scans) - 1, dataclasses.replace(scans[-1], max_range="20")),
+                   (3, dataclasses.replace(scans[3], pose=np.zeros(2))),
+                   (2, None)):
+        steps = []
+        with pytest.raises(InvalidOptionError, match=f"scan {k}"):
+            Slam().run(LaserLog(tuple(scans[:k] + [bad] + scans[k + 1:]), short_run.log.odometry),
+                       progress=lambda i, n: steps.append(i))
+        assert steps == []
+    with pytest.raises(InvalidOptionError, match="LaserLog"):
+        Slam().run(list(scans))
+    # a driver that reuses its buffers does not change the run
+    reference = Slam().run(short_run.log)
+    slam = Slam()
+    for scan in scans:
+        mine = dataclasses.replace(scan, ranges=scan.ranges.copy(), pose=scan.pose.copy())
+        slam.add(mine)
+        mine.ranges[:] *= 0.5
+        mine.pose[:] = 0.0
+    assert np.array_equal(slam.finish().poses, reference.poses)
+
+
+def test_finish_refuses_without_losing_the_run_and_run_waits_for_it(short_run):
+    from taichi_match import SlamRunError
+
+    scans = short_run.log.scans
+    slam = Slam()
+    still = [dataclasses.replace(s, pose=scans[0].pose) for s in scans[:3]]
+    for scan in still:
+        slam.add(scan)
+    with pytest.raises(InvalidOptionError, match="no odometry"):
+        slam.finish()
+    with pytest.raises(SlamRunError, match="under way"):
+        slam.run(short_run.log)
+    for scan in scans[3:]:                           # the run goes on
+        slam.add(scan)
+    result = slam.finish()
+    assert len(result.poses) == len(scans)
