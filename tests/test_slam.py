@@ -1029,3 +1029,17 @@ def test_finish_refuses_without_losing_the_run_and_run_waits_for_it(short_run):
         slam.add(scan)
     result = slam.finish()
     assert len(result.poses) == len(scans)
+
+
+def test_the_readme_scan_by_scan_example_runs(tmp_path, monkeypatch):
+    """The README's Python block for the loop scan by scan, run as written (in a scratch folder),
+    and its outputs loaded back."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "mapper.add" in b)
+    monkeypatch.chdir(tmp_path)
+    exec(compile(block, "README.md", "exec"), {})
+    _, poses = read_tum(tmp_path / "slam_out" / "trajectory.tum")
+    assert len(poses) == len(simulate_log(0).log)
