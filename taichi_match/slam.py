@@ -86,7 +86,6 @@ therefore needs ``run``).
 """
 
 import math
-import os
 import time
 from dataclasses import dataclass, field, replace
 from typing import Optional
@@ -101,6 +100,7 @@ from ._helper import Helper
 from ._matcher import Matcher
 from ._options import MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
+from ._slam_outputs import loop_summary, output_paths, report, write_outputs
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT, MIN_WALLS, compare_walls, placed_walls
 from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan
 from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
@@ -1271,136 +1271,6 @@ def _optimise(gtsam, graph, values, keys):
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
     return _poses(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
-
-OUTPUTS = ("trajectory.tum", "map.yaml", "map.pgm", "graph.g2o", "report.md")
-
-
-def output_paths(folder, *, force: bool = False, keep=()) -> dict:
-    """The paths ``write_outputs`` writes in ``folder``, checked before any work: an existing output
-    is an error without ``force``, and always when it is a folder or one of the files in ``keep``
-    (the inputs: a log or a reference never becomes an output). Returns {name: Path}."""
-    from pathlib import Path
-
-    if not str(folder).strip():
-        raise InvalidOptionError("the output folder must be named (an empty path would write into the current "
-                                 "folder)")
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise FileExistsError(f"{folder} exists and is not a folder")
-    existing = folder.absolute()
-    while not existing.exists() and existing != existing.parent:      # the folder, or where it would go
-        existing = existing.parent
-    if not os.access(existing, os.W_OK | os.X_OK):                      # (read-only file systems too)
-        raise PermissionError(f"cannot write into {existing}: the outputs would be lost after the run")
-    paths = {name: folder / file for name, file in zip(("trajectory", "map", "image", "graph", "report"), OUTPUTS)}
-    kept = [Path(k).resolve() for k in keep if k]
-    for path in paths.values():
-        if path.resolve() in kept:
-            raise FileExistsError(f"{path} is an input of this run; choose another output folder")
-        if path.is_dir():
-            raise FileExistsError(f"{path} is a folder")
-        if path.exists() and not force:
-            raise FileExistsError(f"{path} exists (use force=True / --force to replace the outputs)")
-    return paths
-
-
-def write_outputs(result: SlamResult, folder, *, source: str = "", force: bool = False, keep=()) -> dict:
-    """Write ``trajectory.tum``, ``map.yaml`` + ``map.pgm``, ``graph.g2o`` and ``report.md`` into
-    ``folder`` (created if missing), after ``output_paths``'s checks. All five are written to a
-    temporary folder inside ``folder`` first and then moved into place together, with SIGINT,
-    SIGTERM and SIGHUP held back meanwhile: a failure leaves the old outputs, not a mix of old and
-    new. Returns {name: path}."""
-    import shutil
-    import tempfile
-    from pathlib import Path
-
-    from . import io
-    from .logs import write_tum
-
-    gtsam = _gtsam()
-    paths = output_paths(folder, force=force, keep=keep)
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".slam-", dir=folder))
-    try:
-        staged = {name: staging / path.name for name, path in paths.items()}
-        io.write_ros_map(result.map, staged["map"])
-        write_tum(staged["trajectory"], result.timestamps, result.poses)
-        gtsam.writeG2o(_plain_graph(gtsam, result.graph), result.values, str(staged["graph"]))
-        staged["report"].write_text(report(result, source))
-        with io._signals_held():
-            for name, path in paths.items():
-                staged[name].replace(path)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    return paths
-
-
-def _plain_graph(gtsam, graph):
-    """The graph's between-factors with their Gaussian noise (g2o has no robust kernels, no priors)."""
-    plain = gtsam.NonlinearFactorGraph()
-    for i in range(graph.size()):
-        factor = graph.at(i)
-        if isinstance(factor, gtsam.BetweenFactorPose2):
-            noise = factor.noiseModel()
-            if isinstance(noise, gtsam.noiseModel.Robust):
-                noise = noise.noise()
-            a, b = factor.keys()
-            plain.add(gtsam.BetweenFactorPose2(a, b, factor.measured(), noise))
-    return plain
-
-
-def loop_summary(result: SlamResult) -> str:
-    """The loop closures in one line: accepted of tried and in the graph, the loop-closing stage's
-    and the audit's repairs (``audit``) apart."""
-    def counts(loops):
-        return (f"accepted {sum(lp['accepted'] for lp in loops)}/{len(loops)}, "
-                f"in the graph {sum(lp['edge'] for lp in loops)}")
-
-    repairs = [lp for lp in result.loops if lp.get("repair")]
-    text = f"loop closures {counts([lp for lp in result.loops if not lp.get('repair')])}"
-    return text + (f"; the audit's repairs {counts(repairs)}" if repairs else "")
-
-
-def report(result: SlamResult, source: str = "") -> str:
-    """The run's settings, counts and time per stage as Markdown."""
-    n = len(result.poses)
-    total = sum(result.seconds.values())
-    accepted, tried = result.scan_matches
-    lines = ["# taichi-match slam", "", f"Input: `{source}`" if source else "", "",
-             f"- scans: {n}; submaps of {result.options.submap_scans} scans at {result.options.resolution} m",
-             f"- scan-to-submap matches accepted: {accepted} of {tried}",
-             f"- {loop_summary(result)} (in the graph: also consistent with their neighbours); matched by helper "
-             f"processes: {sum(lp['helper'] for lp in result.loops)}; not matched, already tied (``loop_ties``): "
-             f"{result.loops_tied}",
-             f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", ""]
-    if result.disagreements is not None:
-        pairs = result.disagreements
-        ending = ":" if pairs else "."
-        if pairs and result.options.audit == "repair":
-            ending = f"; {sum(p['repaired'] for p in pairs)} of them now joined by a repair closure, optimised again:"
-        lines += [f"Audit: {len(pairs)} pairs of submaps disagreed at the poses optimised before the audit (walls of "
-                  f"one on the other's free space){ending}", ""]
-        notes = {(True, False): "; repaired", (False, True): "; a loop closure in the graph joins them"}
-        lines += [f"- submaps {a} and {b}: {p['walls']} walls compared, {p['agreement']:.2f} agree, "
-                  f"{p['conflict']:.2f} on free space{notes.get((p['repaired'], p.get('joined', False)), '')}"
-                  for p in pairs for a, b in [p["submaps"]]]
-        lines += [""] if pairs else []
-    lines += ["| stage | seconds | ms per scan |", "|---|---|---|"]
-    lines += [f"| {stage} | {sec:.2f} | {1e3 * sec / n:.1f} |" for stage, sec in result.seconds.items()]
-    lines += [f"| total | {total:.2f} | {1e3 * total / n:.1f} |", ""]
-    if len(result.match_parts):
-        target, scan, match = 1e3 * np.median(result.match_parts, axis=0)
-        lines += [f"Front-end match, median: {1e3 * np.median(result.match_seconds):.1f} ms (preparing the target "
-                  f"{target:.1f} ms, the scan {scan:.1f} ms, matching the prepared maps {match:.1f} ms).", ""]
-    if result.add_seconds is not None and len(result.add_seconds):
-        median, high, top = 1e3 * np.percentile(result.add_seconds, [50, 99, 100])
-        lines += [f"Each scan as it came (``Slam.add``): median {median:.1f} ms, 99th percentile {high:.1f} ms, "
-                  f"max {top:.1f} ms (a scan that completes a submap waits for its loop closures and an "
-                  f"optimisation); {np.mean(result.add_seconds > 0.025):.1%} of the scans over 25 ms.", ""]
-    lines += ["Options:", "", "```", repr(result.options), "```", ""]
-    return "\n".join(lines)
-
 
 def _values(gtsam, est, keys):
     values = gtsam.Values()

@@ -367,7 +367,7 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(shor
     is bad input before the run, not an error after it."""
     log_path = tmp_path / "run.log"
     write_carmen(log_path, short_run.log)
-    monkeypatch.setattr("taichi_match.slam.os.access", lambda path, mode: False)
+    monkeypatch.setattr("taichi_match._slam_outputs.os.access", lambda path, mode: False)
     ran = []
     monkeypatch.setattr(Slam, "run", lambda self, *args, **kwargs: ran.append(1))
     assert main(["slam", str(log_path), "--out", str(tmp_path / "ro" / "out")]) == 2
