@@ -417,8 +417,8 @@ def _slam(args):
     paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference))
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
-    print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
-          f"{accepted}/{tried}; {loop_summary(result)}{_audit_line(result)}")
+    print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan{_scan_times(result)}); "
+          f"scan matches accepted {accepted}/{tried}; {loop_summary(result)}{_audit_line(result)}")
     if reference is not None:
         from taichi_match.evaluation import trajectory_errors
 
@@ -455,7 +455,7 @@ def _demo_slam(args):
           f"{errors['rpe_m']:.3f} m {errors['rpe_deg']:.2f} deg")
     print(f"the odometry alone:          ATE {odometry['ate_m']:.3f} m {odometry['ate_deg']:.2f} deg, "
           f"RPE over 10 scans {odometry['rpe_m']:.3f} m {odometry['rpe_deg']:.2f} deg")
-    print(f"time {seconds:.1f} s, {1e3 * seconds / len(run.log):.0f} ms per scan")
+    print(f"time {seconds:.1f} s, {1e3 * seconds / len(run.log):.0f} ms per scan{_scan_times(result)}")
     if args.plot:
         try:
             from taichi_match import plots
@@ -489,6 +489,16 @@ def _audit_line(result) -> str:
     if pairs and result.options.audit == "repair":
         line += f", {sum(p['repaired'] for p in pairs)} of them joined by a repair closure since"
     return line
+
+
+def _scan_times(result) -> str:
+    """Each scan's own time as it came (``Slam.add``): its median and its maximum."""
+    import numpy as np
+
+    times = result.add_seconds
+    if times is None or not len(times):
+        return ""
+    return f"; each scan as it came: median {1e3 * np.median(times):.0f} ms, at most {1e3 * times.max():.0f} ms"
 
 
 def _progress(label, total, enabled, unit="scan"):
