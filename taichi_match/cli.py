@@ -372,7 +372,7 @@ def _slam(args):
 
     from taichi_match import InvalidOptionError
     from taichi_match.logs import read_carmen, read_tum
-    from taichi_match.slam import Slam, SlamOptions, loop_summary, output_paths, write_outputs
+    from taichi_match.slam import Slam, SlamOptions, loop_summary, output_paths, scan_times, write_outputs
 
     output_paths(args.out, force=args.force, keep=(args.log, args.reference))      # before any work
     bag = os.path.isdir(args.log) or os.path.splitext(args.log)[1] in (".bag", ".db3", ".mcap")
@@ -417,8 +417,9 @@ def _slam(args):
     paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference))
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
-    print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan{_scan_times(result)}); "
-          f"scan matches accepted {accepted}/{tried}; {loop_summary(result)}{_audit_line(result)}")
+    print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
+          f"{accepted}/{tried}; {loop_summary(result)}{_audit_line(result)}")
+    print(f"each scan as it came: {scan_times(result)}")
     if reference is not None:
         from taichi_match.evaluation import trajectory_errors
 
@@ -439,7 +440,7 @@ def _slam(args):
 def _demo_slam(args):
     from taichi_match.evaluation import align_se2, trajectory_errors
     from taichi_match.simulate import simulate_log
-    from taichi_match.slam import Slam, loop_summary
+    from taichi_match.slam import Slam, loop_summary, scan_times
 
     run = simulate_log(args.seed)
     print(f"A simulated robot twice round a 24 x 16 m floor plan (taichi_match.simulate, seed {args.seed}): "
@@ -455,7 +456,8 @@ def _demo_slam(args):
           f"{errors['rpe_m']:.3f} m {errors['rpe_deg']:.2f} deg")
     print(f"the odometry alone:          ATE {odometry['ate_m']:.3f} m {odometry['ate_deg']:.2f} deg, "
           f"RPE over 10 scans {odometry['rpe_m']:.3f} m {odometry['rpe_deg']:.2f} deg")
-    print(f"time {seconds:.1f} s, {1e3 * seconds / len(run.log):.0f} ms per scan{_scan_times(result)}")
+    print(f"time {seconds:.1f} s, {1e3 * seconds / len(run.log):.0f} ms per scan; each scan as it came: "
+          f"{scan_times(result)}")
     if args.plot:
         try:
             from taichi_match import plots
@@ -489,16 +491,6 @@ def _audit_line(result) -> str:
     if pairs and result.options.audit == "repair":
         line += f", {sum(p['repaired'] for p in pairs)} of them joined by a repair closure since"
     return line
-
-
-def _scan_times(result) -> str:
-    """Each scan's own time as it came (``Slam.add``): its median and its maximum."""
-    import numpy as np
-
-    times = result.add_seconds
-    if times is None or not len(times):
-        return ""
-    return f"; each scan as it came: median {1e3 * np.median(times):.0f} ms, at most {1e3 * times.max():.0f} ms"
 
 
 def _progress(label, total, enabled, unit="scan"):

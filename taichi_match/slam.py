@@ -100,13 +100,13 @@ from ._helper import Helper
 from ._matcher import Matcher
 from ._options import MatchOptions
 from ._se2 import compose, inverse, transform_points, wrap_angle
-from ._slam_outputs import loop_summary, output_paths, report, write_outputs
+from ._slam_outputs import loop_summary, output_paths, report, scan_times, write_outputs
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT, MIN_WALLS, compare_walls, placed_walls
 from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan
 from .scans import BeamCounts, SensorModel, beam_segments, scans_to_grid
 
 __all__ = ["SlamOptions", "SlamResult", "Slam", "slam", "output_paths", "write_outputs", "report", "loop_summary",
-           "scan_accepted"]
+           "scan_times", "scan_accepted"]
 
 # One scan alone: a return is a wall, a ray free (log-odds +-2: p 0.88 / 0.12, beyond the
 # trinary thresholds that the default model's single observation, +0.9 / -0.4, falls between).

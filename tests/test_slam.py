@@ -1043,3 +1043,12 @@ def test_the_readme_scan_by_scan_example_runs(tmp_path, monkeypatch):
     exec(compile(block, "README.md", "exec"), {})
     _, poses = read_tum(tmp_path / "slam_out" / "trajectory.tum")
     assert len(poses) == len(simulate_log(0).log)
+
+
+def test_scan_times_set_the_first_match_apart():
+    from types import SimpleNamespace
+
+    from taichi_match.slam import scan_times
+
+    text = scan_times(SimpleNamespace(add_seconds=np.array([0.001, 0.5, 0.010, 0.020, 0.030])))
+    assert "median 20.0 ms" in text and "at most 30 ms" in text and "new process: 500 ms" in text
