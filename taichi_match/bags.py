@@ -1,7 +1,9 @@
 """ROS 1 and ROS 2 bags in: ``sensor_msgs/LaserScan`` with ``nav_msgs/Odometry``, as a ``LaserLog``.
 
-Apart from the core; needs ``rosbags`` (the ``slam`` extra), which reads both bag formats without
-a ROS installation. Conventions, beyond those of ``logs``:
+Apart from the core; ``read_rosbag`` needs ``rosbags`` (the ``slam`` extra), which reads both bag
+formats without a ROS installation. ``scan_from_laserscan`` turns one message, from a bag or from a
+live subscription, into a ``Scan`` for ``slam.Slam.add`` (no ROS package needed: it reads the
+message's fields). Conventions, beyond those of ``logs``:
 
 - Each scan's angles are ``angle_min + i * angle_increment``; a reading below ``range_min`` or not
   finite and negative is invalid (NaN), one at or above ``range_max`` (or +inf) is no return.
@@ -21,7 +23,7 @@ from ._errors import LogFileError, LogFormatError
 from .logs import _MAX_BEAMS as MAX_BEAMS
 from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan, yaw_of_quaternion
 
-__all__ = ["read_rosbag"]
+__all__ = ["read_rosbag", "scan_from_laserscan"]
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
@@ -43,6 +45,34 @@ def _topic(connections, msgtype, name, path):
     if len(topics) > 1:
         raise LogFormatError(f"{path}: several {msgtype} topics {topics}; name one")
     return topics[0]
+
+
+def scan_from_laserscan(msg, pose) -> Scan:
+    """A ``sensor_msgs/LaserScan`` message (ROS 1 or 2, from a bag or a live subscription: any
+    object with its fields) as a ``Scan`` at ``pose``, the laser's (x, y, theta) in the odometry
+    frame at the message's stamp (the caller's odometry or TF lookup), for ``slam.Slam.add``.
+    Ranges as the module docstring says; a message with more than ``logs`` allows of beams, or
+    without a finite ``range_max`` > 0, a finite ``angle_min`` and a non-zero ``angle_increment``
+    keeping every beam within one turn, raises LogFormatError."""
+    t = _stamp(msg.header)
+    n = len(msg.ranges)
+    if n > MAX_BEAMS:
+        raise LogFormatError(f"a LaserScan at t={t} has {n} ranges; at most {MAX_BEAMS}")
+    r = np.asarray(msg.ranges, dtype=np.float64).copy()
+    max_range = float(msg.range_max)
+    step = float(msg.angle_increment)
+    if not (np.isfinite(max_range) and max_range > 0 and np.isfinite(msg.angle_min) and np.isfinite(step)
+            and step != 0.0 and abs(step) * max(n - 1, 0) <= 2 * np.pi + 1e-6):
+        raise LogFormatError(f"a LaserScan at t={t} needs a finite range_max > 0, a finite angle_min and a non-zero "
+                             f"angle_increment with all beams within one turn")
+    with np.errstate(invalid="ignore"):
+        r[(r < msg.range_min) | (np.isinf(r) & (r < 0))] = np.nan
+        r[(r >= max_range) | np.isposinf(r)] = max_range
+    angles = msg.angle_min + np.arange(len(r)) * msg.angle_increment
+    pose = np.array(pose, dtype=np.float64)
+    for array in (r, angles, pose):
+        array.setflags(write=False)
+    return Scan(float(t), r, angles, pose, max_range)
 
 
 def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
@@ -99,23 +129,10 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
         pose = np.array([np.interp(t, odo[:, 0], odo[:, 1]), np.interp(t, odo[:, 0], odo[:, 2]),
                          np.interp(t, odo[:, 0], heading)])
         pose[2] = np.arctan2(np.sin(pose[2]), np.cos(pose[2]))
-        n = len(msg.ranges)
-        if n > MAX_BEAMS:
-            raise LogFormatError(f"{path}: a LaserScan at t={t} has {n} ranges; at most {MAX_BEAMS}")
-        r = np.asarray(msg.ranges, dtype=np.float64).copy()
-        max_range = float(msg.range_max)
-        step = float(msg.angle_increment)
-        if not (np.isfinite(max_range) and max_range > 0 and np.isfinite(msg.angle_min) and np.isfinite(step)
-                and step != 0.0 and abs(step) * max(n - 1, 0) <= 2 * np.pi + 1e-6):
-            raise LogFormatError(f"{path}: a LaserScan at t={t} needs a finite range_max > 0, a finite angle_min and "
-                                 f"a non-zero angle_increment with all beams within one turn")
-        with np.errstate(invalid="ignore"):
-            r[(r < msg.range_min) | (np.isinf(r) & (r < 0))] = np.nan
-            r[(r >= max_range) | np.isposinf(r)] = max_range
-        angles = msg.angle_min + np.arange(len(r)) * msg.angle_increment
-        for array in (r, angles, pose):
-            array.setflags(write=False)
-        out.append(Scan(float(t), r, angles, pose, max_range))
+        try:
+            out.append(scan_from_laserscan(msg, pose))
+        except LogFormatError as exc:
+            raise LogFormatError(f"{path}: {exc}") from None
     if not out:
         raise LogFormatError(f"{path}: no LaserScan inside the odometry's time span")
     return LaserLog(tuple(out), odo), left_out

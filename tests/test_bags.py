@@ -143,3 +143,34 @@ def test_bag_scan_geometry_is_checked(run, tmp_path):
     write_bag(tmp_path / "flat", LaserLog(flat, run.log.odometry))            # angle_increment 0
     with pytest.raises(LogFormatError, match="angle_increment"):
         read_rosbag(tmp_path / "flat")
+
+
+def test_live_laserscans_feed_the_mapping_loop(run):
+    """Messages as a ROS node's subscription delivers them (``scan_msg``, no bag) through
+    ``scan_from_laserscan`` at each scan's odometry pose, into ``Slam.add``: the ranges as the
+    module docstring says (below range_min or -inf invalid, at or beyond range_max or +inf no
+    return), the angles from angle_min by angle_increment, and a map within the ATE target of the
+    simulated truth; a message without a usable geometry raises LogFormatError."""
+    pytest.importorskip("gtsam")
+    from taichi_match.bags import scan_from_laserscan
+    from taichi_match.evaluation import trajectory_errors
+    from taichi_match.slam import Slam
+
+    sent = run.log.scans[0]
+    msg = scan_msg(sent)
+    raw = np.asarray(msg.ranges, dtype=np.float64)
+    raw[:4] = [0.01, -np.inf, np.inf, sent.max_range + 1.0]
+    msg.ranges = raw.astype(np.float32)
+    got = scan_from_laserscan(msg, sent.pose)
+    assert np.isnan(got.ranges[:2]).all() and np.all(got.ranges[2:4] == np.float32(sent.max_range))
+    np.testing.assert_allclose(got.ranges[4:], np.asarray(sent.ranges[4:], dtype=np.float32), rtol=0, atol=0)
+    np.testing.assert_allclose(got.angles, sent.angles, atol=1e-6)
+    assert got.timestamp == pytest.approx(sent.timestamp + 0.25) and np.array_equal(got.pose, sent.pose)
+    mapper = Slam()
+    for scan in run.log.scans:
+        mapper.add(scan_from_laserscan(scan_msg(scan), scan.pose))
+    errors = trajectory_errors(mapper.finish().poses, run.truth)
+    assert errors["ate_m"] <= 0.10, errors
+    msg.angle_increment = 0.0
+    with pytest.raises(LogFormatError, match="angle_increment"):
+        scan_from_laserscan(msg, sent.pose)
