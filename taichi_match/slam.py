@@ -324,6 +324,18 @@ class SlamOptions:
         logs' (fhw 59, 25 of them wrong against the reference); re-optimised without them, under
         the Cauchy kernel, the ATE stayed or rose (aces 0.077 -> 0.082 m, fhw 0.109 -> 0.116), and
         GNC's own solution rose on seven logs of nine (edmonton 0.171 -> 0.196): not kept.
+    front_end_inflation : the front end's scan-to-submap edges enter the graph with this many times
+        their match's calibrated covariance (the odometry gate uses it as it is; loop closures are
+        not inflated). The scans matched against one submap share the error of that submap as cast,
+        which the graph, taking their edges as independent, does not see: against the simulated
+        run's exact truth its marginals' mean NEES a pose was 8.9 with 1, 4.6 with 4, but still
+        43-68 for the motion over 10 scans (3 is consistent; docs/slam.md), so the marginals are
+        not the trajectory's honest uncertainty either way. With 4 (standard deviations
+        doubled), over twenty runs per log against 1 (bench/SLAM.md against
+        bench/SLAM_front_edges_1.md, 2026-12-05): runs within the ATE target 123 of 180 against
+        110; the median ATE fell on edmonton (0.178 -> 0.120 m, worst 0.397 -> 0.298), orebro
+        (0.119 -> 0.106, but worst 0.172 -> 0.270), fhw, csail and seattle, rose on aces (0.086
+        -> 0.089, worst 0.122 -> 0.109) and belgioioso (0.111 -> 0.114).
     audit : after the last optimisation, look for complete submaps that disagree at their
         optimised poses (``DISAGREE_AGREEMENT``, ``DISAGREE_CONFLICT``: walls of one on the
         other's free space), the map's self-check: "report" lists them in
@@ -370,6 +382,7 @@ class SlamOptions:
     solver: str = "batch"
     workers: int = 0
     robust_kernel: float = 1.5
+    front_end_inflation: float = 4.0
     loop_consistency: bool = True
     audit: Optional[str] = "repair"
     submap_frames: bool = False
@@ -388,7 +401,7 @@ class SlamOptions:
                                      "target_refresh 1 and share_coarse False")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {shown(self.submap_scans)}")
-        for name in ("resolution", "max_ray_length", "robust_kernel"):
+        for name in ("resolution", "max_ray_length", "robust_kernel", "front_end_inflation"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {shown(value)}")
@@ -620,10 +633,10 @@ class Slam:
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(self.options.robust_kernel),
                                               gaussian)
 
-    def _match_edge(self, gtsam, graph, a, b, res):
-        """A match's edge from node ``a`` to node ``b``: its pose, its calibrated covariance under
-        the Cauchy kernel."""
-        cov = _tangent_covariance(res.pose, res.calibrated_covariance)
+    def _match_edge(self, gtsam, graph, a, b, res, inflation: float = 1.0):
+        """A match's edge from node ``a`` to node ``b``: its pose, its calibrated covariance times
+        ``inflation`` under the Cauchy kernel."""
+        cov = _tangent_covariance(res.pose, res.calibrated_covariance) * inflation
         graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
 
     def _odometry_covariance(self, delta):
@@ -865,7 +878,7 @@ class Slam:
         if gated:
             m.accepted += 1
             est[k] = compose(est[target.key], res.pose)
-            self._match_edge(gtsam, m.graph, target.key, k, res)
+            self._match_edge(gtsam, m.graph, target.key, k, res, self.options.front_end_inflation)
         else:
             est[k] = pred
         est[k, 2] = wrap_angle(est[k, 2])

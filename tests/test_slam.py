@@ -432,10 +432,36 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("resolution", 0.002), ("max_ray_length", 300.0),
                                           ("free_margin", -0.1), ("free_margin", math.nan), ("free_margin", True),
                                           ("free_margin", 20.0), ("audit", "yes"), ("audit", True),
-                                          ("audit", np.array(["repair", "report"]))])
+                                          ("audit", np.array(["repair", "report"])),
+                                          ("front_end_inflation", 0.0), ("front_end_inflation", math.inf),
+                                          ("front_end_inflation", "4")])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
+
+
+@pytest.mark.parametrize("inflation", [1.0, 2.5])
+def test_front_end_edges_carry_the_inflated_match_covariance(short_run, inflation):
+    """Each scan matched within the odometry gate has one robust edge from its submap's anchor
+    whose covariance is the match's, rotated into the relative pose's own axes (as gtsam's Pose2
+    wants it, done here by hand), times ``front_end_inflation``."""
+    import gtsam
+
+    result = Slam(front_end_inflation=inflation).run(short_run.log)
+    step = SlamOptions().submap_scans // 2
+    robust = {}
+    for i in range(result.graph.size()):
+        factor = result.graph.at(i)
+        if isinstance(factor, gtsam.BetweenFactorPose2) and isinstance(factor.noiseModel(), gtsam.noiseModel.Robust):
+            robust.setdefault(tuple(factor.keys()), []).append(factor)
+    edges = [record for record in result.scans if record["edge"]]
+    assert len(edges) > 10
+    for record in edges:
+        (factor,) = robust[(record["submap"] * step, record["scan"])]
+        c, s = math.cos(record["pose"][2]), math.sin(record["pose"][2])
+        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        expected = inflation * rotation.T @ np.asarray(record["covariance"]) @ rotation
+        np.testing.assert_allclose(factor.noiseModel().noise().covariance(), expected, rtol=1e-9, atol=1e-15)
 
 
 @pytest.mark.parametrize("refresh", [1, 3, 5])
