@@ -58,7 +58,9 @@ def test_simulated_run_relative_translation_error_within_target(simulated, mappe
                                         "the odometry moved by a micrometre give 0.26-0.38 (median 0.28) on the "
                                         "earlier machines, 0.27-0.51 (median 0.29) on a newer processor (Taichi "
                                         "compiles its kernels for the host, and the loop is chaotic) and with the "
-                                        "submaps' free margin 0.27-0.42 (median 0.32, bench/SLAM.md): scans at the "
+                                        "submaps' free margin 0.27-0.42 (median 0.32), with the front end's edges "
+                                        "inflated 0.20-0.58 over twenty runs (median 0.29, bench/SLAM.md): scans at "
+                                        "the "
                                         "90-degree turns slide 0.3-0.6 degree for several scans in a row, so the "
                                         "target is not met reliably (their submaps as cast, not the matcher: "
                                         "docs/slam.md)")
@@ -115,10 +117,13 @@ def test_loop_closures_see_older_submaps_as_the_graph_places_them(simulated, mon
 
 
 def test_simulated_run_with_submap_frames_meets_every_trajectory_target(simulated):
-    """With ``submap_frames`` (not the default: it loses on five real logs) the same run meets the
-    RPE target in degrees too: 0.287 degrees here, 0.23-0.32 over five runs with the odometry moved
-    by a micrometre (bench/SLAM_submap_frames.md), so this pins the run, not a margin."""
-    errors = trajectory_errors(Slam(submap_frames=True).run(simulated.log).poses, simulated.truth)
+    """With ``submap_frames`` (not the default: it loses on five real logs) and the front end's
+    edges not inflated (``front_end_inflation`` 1, as when it was measured) the same run meets the
+    RPE target in degrees too: 0.23-0.32 over five runs with the odometry moved by a micrometre
+    (bench/SLAM_submap_frames.md), so this pins the run, not a margin. With the default inflation
+    (4) it does not (0.37 degree, 2026-12-05)."""
+    errors = trajectory_errors(Slam(submap_frames=True, front_end_inflation=1.0).run(simulated.log).poses,
+                               simulated.truth)
     assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0, errors
     assert errors["rpe_m"] <= 0.03 and errors["rpe_deg"] <= 0.3, errors
 
