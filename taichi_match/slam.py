@@ -335,7 +335,9 @@ class SlamOptions:
         bench/SLAM_front_edges_1.md, 2026-12-05): runs within the ATE target 123 of 180 against
         110; the median ATE fell on edmonton (0.178 -> 0.120 m, worst 0.397 -> 0.298), orebro
         (0.119 -> 0.106, but worst 0.172 -> 0.270), fhw, csail and seattle, rose on aces (0.086
-        -> 0.089, worst 0.122 -> 0.109) and belgioioso (0.111 -> 0.114).
+        -> 0.089, worst 0.122 -> 0.109) and belgioioso (0.111 -> 0.114). With 9
+        (bench/SLAM_front_edges_9.md): 116 of 180; aces and csail better, fhw (12 -> 4 runs within)
+        and orebro (10 -> 4) worse.
     audit : after the last optimisation, look for complete submaps that disagree at their
         optimised poses (``DISAGREE_AGREEMENT``, ``DISAGREE_CONFLICT``: walls of one on the
         other's free space), the map's self-check: "report" lists them in
