@@ -405,7 +405,8 @@ class SlamOptions:
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {shown(self.submap_scans)}")
         for name in ("resolution", "max_ray_length", "robust_kernel", "front_end_inflation"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+                    and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {shown(value)}")
         if self.max_ray_length / self.resolution > MAX_CELLS_PER_RAY:
             raise InvalidOptionError(f"max_ray_length / resolution must be at most {MAX_CELLS_PER_RAY} (a submap's "

@@ -60,8 +60,7 @@ def test_simulated_run_relative_translation_error_within_target(simulated, mappe
                                         "compiles its kernels for the host, and the loop is chaotic) and with the "
                                         "submaps' free margin 0.27-0.42 (median 0.32), with the front end's edges "
                                         "inflated 0.20-0.58 over twenty runs (median 0.29, bench/SLAM.md): scans at "
-                                        "the "
-                                        "90-degree turns slide 0.3-0.6 degree for several scans in a row, so the "
+                                        "the 90-degree turns slide 0.3-0.6 degree for several scans in a row, so the "
                                         "target is not met reliably (their submaps as cast, not the matcher: "
                                         "docs/slam.md)")
 def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
@@ -439,7 +438,7 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("free_margin", 20.0), ("audit", "yes"), ("audit", True),
                                           ("audit", np.array(["repair", "report"])),
                                           ("front_end_inflation", 0.0), ("front_end_inflation", math.inf),
-                                          ("front_end_inflation", "4")])
+                                          ("front_end_inflation", "4"), ("front_end_inflation", True)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
