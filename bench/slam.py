@@ -36,6 +36,7 @@ FLASER lines), then against ``NAME.reference.tum``:
     python bench/slam.py --simulated --logs                # only the simulated run
     python bench/slam.py --logs orebro csail --jitter 2     # the spread over three runs per log
     python bench/slam.py --set target_refresh=5            # options other than the defaults
+    python bench/slam.py --set scan_matcher.levels=2       # a field of the front end's MatchOptions
     python bench/slam.py --simulated --logs --laps 12 --set loop_ties=5 --set solver=isam2
                                                            # a long run: the simulated ring 12 times round
 """
@@ -55,7 +56,7 @@ import numpy as np
 from taichi_match import compose, inverse, wrap_angle
 from taichi_match.evaluation import align_se2, trajectory_errors
 from taichi_match.logs import read_carmen, read_tum
-from taichi_match.slam import Slam
+from taichi_match.slam import Slam, SlamOptions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from yardstick import corridor_median_ms  # noqa: E402
@@ -262,15 +263,19 @@ def main():
                         help="N more runs per log with the odometry moved by about 1e-6 (seeded): the spread")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="a SlamOptions field other than the default (a Python literal, or a word taken as a "
-                             "string), e.g. target_refresh=5, solver=isam2")
+                             "string), e.g. target_refresh=5, solver=isam2, scan_matcher.levels=2")
     args = parser.parse_args()
     options = {}
     for item in args.set:
         name, _, value = item.partition("=")
         try:
-            options[name] = ast.literal_eval(value)
+            value = ast.literal_eval(value)
         except (ValueError, SyntaxError):
-            options[name] = value
+            pass
+        field, _, inner = name.partition(".")        # "scan_matcher.levels": a MatchOptions field
+        if inner:
+            value = options.get(field, getattr(SlamOptions(), field)).replace(**{inner: value})
+        options[field] = value
     from taichi_match.reproduce import git_revision
 
     started = time.perf_counter()

@@ -238,15 +238,16 @@ class LevelCost:
     so that a unit step moves a typical cell of B by about a metre whichever way it goes. K follows
     the number of B's known cells at this level.
     With ``interpolation="nearest"`` (the paper's e) derivatives come from the stencils of
-    eq. (10)-(12); with "bilinear" the gradient is analytic (one pose) and the Hessian is the
-    central difference of gradients at +-1 step on each axis (7 poses).
+    eq. (10)-(12); with "bilinear" the gradient of the paper's e is analytic (one pose) and the
+    Hessian is the central difference of gradients at +-1 step on each axis (7 poses); the envelope
+    discrepancy, bilinear or not, takes the stencils.
     """
 
     def __init__(self, engine, pa, pb, prep_b, opts, r0, full_weight, counter):
         """``engine`` evaluates e between the level's maps ``pa`` and ``pb`` (``make_engine``);
         ``prep_b`` is B as given, ``full_weight`` the K of eq. (8) there, ``counter`` a ``Counter``."""
         self._engine = engine
-        self._bilinear = opts.interpolation == "bilinear"
+        self._bilinear = opts.interpolation == "bilinear" and opts.blur_kind != "envelope"     # analytic
         self._counter = counter
         self._r0 = r0
         self._rotation_scale = opts.rotation_scale

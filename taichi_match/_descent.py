@@ -54,7 +54,8 @@ def descend(prep_a: PreparedMap, prep_b: PreparedMap, opts: MatchOptions, r0: np
 
 def _level_cost(prep_a, prep_b, level, opts, r0, weight, counter):
     pa, pb = prep_a.level(level), prep_b.level(level)
-    return LevelCost(make_engine(opts.engine, pa, pb, opts.unknown_cost), pa, pb, prep_b, opts, r0, weight, counter)
+    engine = make_engine(opts.engine, pa, pb, opts.unknown_cost, opts.interpolation)
+    return LevelCost(engine, pa, pb, prep_b, opts, r0, weight, counter)
 
 
 def _no_overlap(r0, cost_value):

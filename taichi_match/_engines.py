@@ -53,7 +53,7 @@ class Backend(NamedTuple):
     """A backend: how to make its two evaluators from prepared maps."""
 
     dense: Callable[[PreparedMap, PreparedMap, bool], DenseEvaluator]     # (a, b, count_only)
-    envelope: Callable[[PreparedMap, PreparedMap, float], EnvelopeEvaluator]   # (a, b, unknown_cost)
+    envelope: Callable[[PreparedMap, PreparedMap, float, bool], EnvelopeEvaluator]   # (a, b, unknown_cost, bilinear)
 
 
 def _taichi() -> Backend:
@@ -68,28 +68,32 @@ def _numpy() -> Backend:
     from ._reference import NumpyDense
 
     return Backend(lambda a, b, count_only: NumpyDense(a.lower, b.lower),
-                   lambda a, b, unknown_cost: NumpyEnvelope(a.lower, b.lower, a.blur_width, b.blur_width, unknown_cost))
+                   lambda a, b, unknown_cost, bilinear: NumpyEnvelope(a.lower, b.lower, a.blur_width, b.blur_width,
+                                                                      unknown_cost, bilinear))
 
 
 BACKENDS = {"taichi": _taichi, "numpy": _numpy}     # name -> the backend (its modules imported when first used)
 ENGINES = tuple(BACKENDS)
 
 
-def make_engine(name: str, a: PreparedMap, b: PreparedMap, unknown_cost: float = 0.0):
-    """The engine of backend ``name`` for B in A: eq. (6) (a ``DenseEvaluator``), or for maps
-    prepared with the "envelope" blur the envelope discrepancy (``EnvelopeDiscrepancy``)."""
+def make_engine(name: str, a: PreparedMap, b: PreparedMap, unknown_cost: float = 0.0, interpolation: str = "nearest"):
+    """The engine of backend ``name`` for B in A: eq. (6) (a ``DenseEvaluator``, whose ``bilinear``
+    evaluates the interpolated e), or for maps prepared with the "envelope" blur the envelope
+    discrepancy (``EnvelopeDiscrepancy``), its walls' costs interpolated with ``interpolation``
+    "bilinear"."""
     if name not in BACKENDS:
         raise InvalidOptionError(f"engine must be one of {ENGINES}; got {name!r}")
     if (a.blur_kind == "envelope") != (b.blur_kind == "envelope"):
         raise InvalidOptionError("both maps must be prepared with the same kind of blur")
     backend = BACKENDS[name]()
     if a.blur_kind == "envelope":
-        return EnvelopeDiscrepancy(backend, a, b, unknown_cost)
+        return EnvelopeDiscrepancy(backend, a, b, unknown_cost, interpolation == "bilinear")
     return backend.dense(a, b, False)
 
 
 class EnvelopeDiscrepancy:
-    """The envelope discrepancy with the dense evaluator's interface; no bilinear option.
+    """The envelope discrepancy with the dense evaluator's interface; ``bilinear``: its walls' costs
+    interpolated between cell centres (``_envelope``), its derivatives still from the stencils.
 
     The overlap (known cells of B on known cells of A, as for eq. 6) takes a second launch of the
     dense evaluator on the maps themselves, for the poses ``count`` asks for; for "any", only
@@ -99,8 +103,8 @@ class EnvelopeDiscrepancy:
 
     counts_free = False          # counting the overlap costs a launch of its own
 
-    def __init__(self, backend: Backend, a: PreparedMap, b: PreparedMap, unknown_cost: float):
-        self._evaluate = backend.envelope(a, b, unknown_cost)
+    def __init__(self, backend: Backend, a: PreparedMap, b: PreparedMap, unknown_cost: float, bilinear: bool = False):
+        self._evaluate = backend.envelope(a, b, unknown_cost, bilinear)
         self._make_dense = lambda: backend.dense(a, b, True)
         self._dense_evaluator = None
         self.dense_launches = 0          # overlap counts that count="any" could not spare
@@ -141,5 +145,6 @@ class EnvelopeDiscrepancy:
         return self._dense(poses, "all")[1]
 
     def bilinear(self, poses):
-        raise InvalidOptionError('interpolation="bilinear" needs a dense blur ("gaussian" or "ramp"), '
-                                 'not "envelope"')
+        raise InvalidOptionError("the envelope discrepancy has no analytic gradient: with interpolation="
+                                 "\"bilinear\" its walls' costs are interpolated and its derivatives come from the "
+                                 "stencils (``LevelCost``)")

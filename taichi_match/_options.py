@@ -69,16 +69,19 @@ class MatchOptions:
         refine_xtol * step (``xtol`` holds on the coarsest level, which only has to find the
         basin). Stopping at a quarter of a cell there left laser submaps 1 degree off and the
         pose 2-4 times farther from the truth than settling does (bench/TUNING.md).
-    optimizer : None (default): "newton" with nearest-cell lookup, "bfgs" with bilinear.
+    optimizer : None (default): "bfgs" for the paper's e with bilinear interpolation, else "newton".
         "newton": trust-region Newton on the stencil's own Hessian, one launch
         of the 25 poses of eq. (10)-(12) per iteration, whose last launch also gives the
         covariance; "bfgs": the paper's BFGS with the 13-pose gradient stencil (eq. 9-10),
         finished by a compass search, then one launch for the Hessian.
     interpolation : "nearest" (the paper's eq. 6: B's cell centre looks up A's cell) or
-        "bilinear" (beyond the paper: A interpolated between its cell centres, a cell of B
-        counting where the four around it are known). Bilinear e is continuous away from unknown
-        cells; its gradient is analytic (one pose per evaluation) and its Hessian, also for the
-        covariance, the central difference of gradients one step either side (7 poses).
+        "bilinear" (beyond the paper). For the paper's e: A interpolated between its cell centres,
+        a cell of B counting where the four around it are known; bilinear e is continuous away
+        from unknown cells, its gradient analytic (one pose per evaluation) and its Hessian, also
+        for the covariance, the central difference of gradients one step either side (7 poses).
+        For the "envelope" discrepancy: each wall's cost (``_envelope``) interpolated between the
+        four cell centres around where it lands, so that e no longer steps as walls cross cell
+        boundaries; four lookups a wall, derivatives from the stencils as with "nearest".
     covariance_scale : the proportionality factor of eq. (11), cov = scale * H(e)^-1.
     engine : "taichi" (batched kernels) or "numpy" (the plain reference, for baselines).
 
@@ -148,10 +151,6 @@ class MatchOptions:
             raise InvalidOptionError(f"blur_kind must be one of {BLUR_KINDS}; got {self.blur_kind!r}")
         if self.interpolation not in INTERPOLATIONS:
             raise InvalidOptionError(f"interpolation must be one of {INTERPOLATIONS}; got {self.interpolation!r}")
-        if self.interpolation == "bilinear" and self.blur_kind == "envelope":
-            raise InvalidOptionError('interpolation="bilinear" interpolates the paper\'s |p_A - p_B|: use it with '
-                                     'blur_kind="gaussian" or "ramp" (for instance MatchOptions.paper(interpolation='
-                                     '"bilinear")), not the "envelope" discrepancy')
         if self.optimizer is not None and self.optimizer not in OPTIMIZERS:
             raise InvalidOptionError(f"optimizer must be one of {OPTIMIZERS} or None; got {self.optimizer!r}")
         if self.engine not in ENGINES:
@@ -195,13 +194,13 @@ class MatchOptions:
 
     @property
     def method(self):
-        """The optimizer in use: ``optimizer``, or by default "newton" with nearest-cell lookup and
-        "bfgs" with bilinear interpolation (whose analytic gradient leaves out the jumps where B's
-        cells cross onto unknown cells of A, which a Newton model then misses; measured in
-        bench/ABLATION.md)."""
+        """The optimizer in use: ``optimizer``, or by default "bfgs" for the paper's e with bilinear
+        interpolation (whose analytic gradient leaves out the jumps where B's cells cross onto
+        unknown cells of A, which a Newton model then misses; measured in bench/ABLATION.md), and
+        "newton" otherwise (the envelope discrepancy's derivatives come from the stencils)."""
         if self.optimizer is not None:
             return self.optimizer
-        return "bfgs" if self.interpolation == "bilinear" else "newton"
+        return "bfgs" if self.interpolation == "bilinear" and self.blur_kind != "envelope" else "newton"
 
     def weight(self, known_cells_b):
         """K of eq. (8) for a map B with ``known_cells_b`` known cells."""

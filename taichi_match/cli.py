@@ -529,9 +529,10 @@ def _add_match_options(parser):
                         help="the discrepancy: 'envelope' (default) or the paper's |p_A - p_B| on a 'gaussian' "
                              "or 'ramp' blur")
     parser.add_argument("--interpolation", choices=("nearest", "bilinear"),
-                        help="lookup in A: nearest cell (the paper's, default) or bilinear (slower, finer; "
-                             "with --blur-kind gaussian or ramp only)")
-    parser.add_argument("--optimizer", choices=("newton", "bfgs"), help="default: newton (nearest), bfgs (bilinear)")
+                        help="lookup: nearest cell (the paper's, default) or bilinear (each lookup "
+                             "interpolated between the four cell centres around it: slower, smooth)")
+    parser.add_argument("--optimizer", choices=("newton", "bfgs"),
+                        help="default: bfgs for the paper's discrepancy with bilinear, else newton")
     parser.add_argument("--prior-weight", type=float, help="K of eq. (8)")
     parser.add_argument("--rotation-scale", type=float, help="L of eq. (7), metres per radian")
     parser.add_argument("--max-iterations", type=int, help="optimiser iterations at the coarsest level (0: none)")

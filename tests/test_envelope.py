@@ -440,16 +440,75 @@ def test_trinary_evidence_is_the_default_and_changes_the_prepared_map(rng):
 # 7. Options
 
 
-def test_bilinear_needs_a_dense_blur(room_pair):
+@pytest.mark.parametrize("unknown_cost", [0.0, 0.3])
+@pytest.mark.parametrize("case", list(CASES))
+def test_the_bilinear_kernel_equals_the_numpy_oracle(case, unknown_cost, rng):
+    """Each wall's cost interpolated between the four cell centres around it: the kernel (float32
+    coordinates) against the oracle (float64, from the maps alone), at every pose: the value is
+    continuous across cell boundaries, so there are no ties to set aside."""
+    shape_a, res_a, origin_a, shape_b, res_b, origin_b = CASES[case]
+    a = sparse_walls_map(rng, shape_a, res_a, origin_a)
+    b = sparse_walls_map(rng, shape_b, res_b, origin_b, unknown=0.3)
+    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
+    extent = max(shape_a) * res_a
+    n = 48
+    poses = np.column_stack([rng.uniform(-0.5, 0.5, n) * extent, rng.uniform(-0.5, 0.5, n) * extent,
+                             rng.uniform(-np.pi, np.pi, n)])
+    v_ti = make_engine("taichi", pa, pb, unknown_cost, "bilinear")(poses)[0]
+    v_np = make_engine("numpy", pa, pb, unknown_cost, "bilinear")(poses)[0]
+    walls = len(walls_of(a)[0]) + len(walls_of(b)[0])
+    np.testing.assert_allclose(v_ti, v_np, rtol=1e-5, atol=1e-5 * walls)
+    # not the nearest cell's value: the interpolation changed the sums
+    nearest = make_engine("numpy", pa, pb, unknown_cost)(poses)[0]
+    assert np.abs(v_np - nearest).max() > 0.2
+    for name in ("taichi", "numpy"):
+        assert make_engine(name, pa, pb, unknown_cost, "bilinear")(FAR_POSES)[0].tolist() == [0.0] * len(FAR_POSES)
+
+
+def test_bilinear_costs_a_lone_wall_between_the_cell_centres():
+    """Hand values: B a lone wall; A a known row with its wall at column 5 and free cells at
+    columns 4 and 6 (envelope 0 there: blur 0). B's wall a quarter cell right of A's wall's centre
+    costs 0 (3/4) + 1 (1/4) = 1/4 with "bilinear", 0 with "nearest"."""
+    prob = np.full((3, 11), np.nan)
+    prob[1, :] = 0.0
+    prob[1, 5] = 1.0
+    a = GridMap(prob, 0.1)
+    lone = np.full((1, 1), 1.0)
+    b = GridMap(lone, 0.1)
+    pa, pb = PreparedMap(a, 0.0, "envelope"), PreparedMap(b, 0.0, "envelope")
+    pose = [(0.5 + 0.025, 0.1, 0.0)]           # B's cell centre (0.05, 0.05) onto (0.575, 0.15)
+    for name in ("taichi", "numpy"):
+        # the other way, A's wall lands a quarter cell left of B's lone (known) cell's centre,
+        # between it (cost 0) and the ring off B (cost 0)
+        nearest = make_engine(name, pa, pb, 0.0)(pose)[0][0]
+        bilinear = make_engine(name, pa, pb, 0.0, "bilinear")(pose)[0][0]
+        assert nearest == pytest.approx(0.0, abs=1e-6), name
+        assert bilinear == pytest.approx(0.25, abs=1e-6), name
+
+
+def test_bilinear_smooths_the_discrepancy_along_a_path(room_pair):
+    """Along a straight path of poses a tenth of a cell apart, the interpolated envelope changes
+    by far less from pose to pose than the nearest cell's, which steps as walls cross cells."""
     a, b = room_pair
-    with pytest.raises(InvalidOptionError, match="bilinear"):
-        MatchOptions(interpolation="bilinear")
-    with pytest.raises(InvalidOptionError, match="bilinear"):
-        tm.match(a, b, TRUTH, interpolation="bilinear")
-    paper = MatchOptions.paper(interpolation="bilinear")
-    assert paper.blur_kind == "gaussian" and paper.method == "bfgs"
+    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
+    t = np.linspace(-0.15, 0.15, 61)[:, None]
+    poses = np.asarray(TRUTH) + t * np.array([1.0, 0.5, 0.2])
+    nearest = make_engine("taichi", pa, pb, 0.3)(poses)[0]
+    bilinear = make_engine("taichi", pa, pb, 0.3, "bilinear")(poses)[0]
+    second = lambda v: np.abs(np.diff(v, 2)).max()          # noqa: E731
+    assert second(bilinear) < 0.25 * second(nearest)
+
+
+def test_bilinear_envelope_matches_with_the_newton_driver(room_pair):
+    a, b = room_pair
+    options = MatchOptions(interpolation="bilinear")
+    assert options.blur_kind == "envelope" and options.method == "newton"
+    res = tm.match(a, b, (0.1, -0.05, 0.0), interpolation="bilinear")
+    assert res.accepted
+    np.testing.assert_allclose(res.pose, TRUTH, atol=0.02)
+    assert MatchOptions.paper(interpolation="bilinear").method == "bfgs"
     engine = make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope"))
-    with pytest.raises(InvalidOptionError, match="bilinear"):
+    with pytest.raises(InvalidOptionError, match="analytic gradient"):
         engine.bilinear(np.array([TRUTH]))
     with pytest.raises(InvalidOptionError, match="same kind of blur"):
         make_engine("taichi", PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "gaussian"))
