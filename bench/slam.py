@@ -36,7 +36,8 @@ FLASER lines), then against ``NAME.reference.tum``:
     python bench/slam.py --simulated --logs                # only the simulated run
     python bench/slam.py --logs orebro csail --jitter 2     # the spread over three runs per log
     python bench/slam.py --set target_refresh=5            # options other than the defaults
-    python bench/slam.py --set scan_matcher.levels=2       # a field of the front end's MatchOptions
+    python bench/slam.py --set scan_matcher.levels=3 --set scan_matcher.interpolation=nearest
+                                                           # the front end's MatchOptions before 2026-12-06
     python bench/slam.py --simulated --logs --laps 12 --set loop_ties=5 --set solver=isam2
                                                            # a long run: the simulated ring 12 times round
 """
@@ -263,7 +264,7 @@ def main():
                         help="N more runs per log with the odometry moved by about 1e-6 (seeded): the spread")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="a SlamOptions field other than the default (a Python literal, or a word taken as a "
-                             "string), e.g. target_refresh=5, solver=isam2, scan_matcher.levels=2")
+                             "string), e.g. target_refresh=5, solver=isam2, scan_matcher.levels=3")
     args = parser.parse_args()
     options = {}
     for item in args.set:

@@ -363,10 +363,21 @@ class SlamOptions:
     submap_frames : give each submap its own frame node in the graph (see the module docstring);
         False: a submap's frame is its first scan's node.
     matcher : the ``MatchOptions`` of the loop-closure matches.
-    scan_matcher : the ``MatchOptions`` of the front end's scan-to-submap matches (fewer pyramid
-        levels are 1.5-2 times faster but derailed aces and edmonton, whose odometry guesses at
-        turns lie beyond one or two levels' basin: ATE 1.48 / 1.06 and 0.76 / 0.32 m at 1 / 2
-        levels, 0.09 and 0.19 at 3).
+    scan_matcher : the ``MatchOptions`` of the front end's scan-to-submap matches: by default the
+        envelope with each wall's cost interpolated between the four cell centres around it
+        (``interpolation="bilinear"``) on two pyramid levels. With the nearest cell's cost a single
+        scan against its submap steps by a wall's worth between poses millimetres apart; a match
+        on one level then often stopped at its guess (aces: 124 of 439 matches 3 cm or 0.3 degree
+        from the three-level answer). Against the nearest cell on three levels (twenty runs per
+        log, 2026-12-06, bench/SLAM.md against bench/SLAM_nearest.md): the front-end match's
+        median 0.79-0.83 of its time (alternating runs on five logs), the median RPE over 10 scans
+        lower on eight logs of nine in metres and seven in degrees (the simulated run's 0.29 -> 0.23
+        degree, under the target), runs within the
+        ATE target 125 of 180 against 123, median ATE lower on five logs, higher on belgioioso
+        (0.114 -> 0.122 m) and orebro (0.106 -> 0.116), whose maps came out crisper all the same
+        (map misfit in five paired runs each: 1.267 -> 1.257 cm, 2.799 -> 2.758 cm). Bilinear in
+        the loop closures too (bench/SLAM_bilinear.md): 130 of 180, but their matches 1.1-1.4
+        times as long (fhw 31 ms a scan). One level, bilinear: edmonton 0.15-0.37 m.
     """
 
     resolution: float = 0.05
@@ -389,7 +400,7 @@ class SlamOptions:
     audit: Optional[str] = "repair"
     submap_frames: bool = False
     matcher: MatchOptions = field(default_factory=MatchOptions)
-    scan_matcher: MatchOptions = field(default_factory=MatchOptions)
+    scan_matcher: MatchOptions = field(default_factory=lambda: MatchOptions(levels=2, interpolation="bilinear"))
 
     def __post_init__(self):
         if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)
