@@ -407,11 +407,16 @@ def _slam(args):
                                                ("loop_search", args.loop_search), ("workers", args.workers),
                                                ("loop_ties", None if args.loop_ties == "off" else args.loop_ties),
                                                ("solver", args.solver),
-                                               ("audit", None if args.audit == "off" else args.audit))
+                                               ("audit", None if args.audit == "off" else args.audit),
+                                               ("front_end_inflation", args.front_end_inflation))
                              if v is not None})
     for field, flag in (("loop_ties", args.loop_ties), ("audit", args.audit)):
         if flag == "off":
             options = dataclasses.replace(options, **{field: None})
+    front_end = {k: v for k, v in (("levels", args.front_end_levels), ("interpolation", args.front_end_lookup))
+                 if v is not None}
+    if front_end:
+        options = dataclasses.replace(options, scan_matcher=options.scan_matcher.replace(**front_end))
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
     paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference))
@@ -689,6 +694,14 @@ def main(argv=None):
     slam.add_argument("--workers", type=int, metavar="N",
                       help="helper processes matching loop-closure candidates beside this one (the same results; "
                            "default 0, see SlamOptions.workers)")
+    slam.add_argument("--front-end-inflation", type=float, metavar="X",
+                      help="the front end's scan-to-submap edges enter the graph with X times their match "
+                           "covariance (default 4, see SlamOptions.front_end_inflation)")
+    slam.add_argument("--front-end-levels", type=int, metavar="N",
+                      help="pyramid levels of the front end's matches (default 2, see SlamOptions.scan_matcher)")
+    slam.add_argument("--front-end-lookup", choices=("bilinear", "nearest"),
+                      help="the front end's lookup of each wall's cost: blended between the four cell centres "
+                           "around it (default) or the nearest cell's (the default before 2026-12-06, with 3 levels)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
     slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
     slam.add_argument("--free-margin", type=float, metavar="M",

@@ -358,7 +358,8 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
                                                  ("--solver", "solver", ("isam2", "batch")),
                                                  ("--free-margin", "free_margin", (0.2, 0.1)),
                                                  ("--loop-radius", "loop_radius", (8.0, 3.0)),
-                                                 ("--audit", "audit", ("report", "repair"))])
+                                                 ("--audit", "audit", ("report", "repair")),
+                                                 ("--front-end-inflation", "front_end_inflation", (2.0, 4.0))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is the default without them ("off": None)."""
@@ -371,6 +372,27 @@ def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field,
         out = tmp_path / f"out{k}"
         assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
         assert f"{field}={value!r}" in (out / "report.md").read_text()
+
+
+def test_cli_slam_front_end_lookup_and_levels_reach_the_front_end(short_run, tmp_path, capsys):
+    """``--front-end-levels`` and ``--front-end-lookup`` set the front end's ``MatchOptions`` (and
+    not the loop closures'), recorded in report.md; bad values are one-line errors."""
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    for k, (args, levels, lookup) in enumerate([([], 2, "bilinear"),
+                                                (["--front-end-levels", "3", "--front-end-lookup", "nearest"], 3,
+                                                 "nearest")]):
+        out = tmp_path / f"out{k}"
+        assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
+        text = (out / "report.md").read_text()
+        front, loops = text.split("scan_matcher=")[1], text.split("scan_matcher=")[0].split("matcher=")[1]
+        assert f"levels={levels}," in front and f"interpolation='{lookup}'" in front
+        assert "levels=3," in loops and "interpolation='nearest'" in loops
+    capsys.readouterr()
+    assert main(["slam", str(log_path), "--out", str(tmp_path / "bad"), "--front-end-levels", "0"]) == 2
+    assert "levels" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["slam", str(log_path), "--out", str(tmp_path / "bad2"), "--front-end-lookup", "cubic"])
 
 
 def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(short_run, tmp_path, monkeypatch,
