@@ -74,17 +74,21 @@ CASES = {  # shape_a, res_a, origin_a, shape_b, res_b, origin_b
 FAR_POSES = [(1e9, 0.0, 0.0), (-1e9, 3.0, 1.0), (0.0, 1e9, -2.0), (1e5, -1e5, 0.3), (3e7, 3e7, np.pi)]
 
 
-@pytest.mark.parametrize("unknown_cost", [0.0, 0.3, 1.0])
-@pytest.mark.parametrize("case", list(CASES))
-def test_kernel_equals_numpy_oracle(case, unknown_cost, rng):
+def oracle_case(case, rng, n=48):
+    """(a, b, prepared a, prepared b, n poses spread over A) for one of ``CASES``."""
     shape_a, res_a, origin_a, shape_b, res_b, origin_b = CASES[case]
     a = sparse_walls_map(rng, shape_a, res_a, origin_a)
     b = sparse_walls_map(rng, shape_b, res_b, origin_b, unknown=0.3)
-    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
     extent = max(shape_a) * res_a
-    n = 48
     poses = np.column_stack([rng.uniform(-0.5, 0.5, n) * extent, rng.uniform(-0.5, 0.5, n) * extent,
                              rng.uniform(-np.pi, np.pi, n)])
+    return a, b, PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope"), poses
+
+
+@pytest.mark.parametrize("unknown_cost", [0.0, 0.3, 1.0])
+@pytest.mark.parametrize("case", list(CASES))
+def test_kernel_equals_numpy_oracle(case, unknown_cost, rng):
+    a, b, pa, pb, poses = oracle_case(case, rng)
     v_ti, n_ti = make_engine("taichi", pa, pb, unknown_cost)(poses)
     v_np, n_np = make_engine("numpy", pa, pb, unknown_cost)(poses)
     # the envelope kernel's own count: walls landing on known cells of the other map
@@ -446,14 +450,7 @@ def test_the_bilinear_kernel_equals_the_numpy_oracle(case, unknown_cost, rng):
     """Each wall's cost interpolated between the four cell centres around it: the kernel (float32
     coordinates) against the oracle (float64, from the maps alone), at every pose: the value is
     continuous across cell boundaries, so there are no ties to set aside."""
-    shape_a, res_a, origin_a, shape_b, res_b, origin_b = CASES[case]
-    a = sparse_walls_map(rng, shape_a, res_a, origin_a)
-    b = sparse_walls_map(rng, shape_b, res_b, origin_b, unknown=0.3)
-    pa, pb = PreparedMap(a, 0.1, "envelope"), PreparedMap(b, 0.1, "envelope")
-    extent = max(shape_a) * res_a
-    n = 48
-    poses = np.column_stack([rng.uniform(-0.5, 0.5, n) * extent, rng.uniform(-0.5, 0.5, n) * extent,
-                             rng.uniform(-np.pi, np.pi, n)])
+    a, b, pa, pb, poses = oracle_case(case, rng)
     v_ti = make_engine("taichi", pa, pb, unknown_cost, "bilinear")(poses)[0]
     v_np = make_engine("numpy", pa, pb, unknown_cost, "bilinear")(poses)[0]
     walls = len(walls_of(a)[0]) + len(walls_of(b)[0])
