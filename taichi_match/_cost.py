@@ -247,7 +247,7 @@ class LevelCost:
         """``engine`` evaluates e between the level's maps ``pa`` and ``pb`` (``make_engine``);
         ``prep_b`` is B as given, ``full_weight`` the K of eq. (8) there, ``counter`` a ``Counter``."""
         self._engine = engine
-        self._bilinear = opts.interpolation == "bilinear" and opts.blur_kind != "envelope"     # analytic
+        self._bilinear = opts.analytic_gradient
         self._counter = counter
         self._r0 = r0
         self._rotation_scale = opts.rotation_scale

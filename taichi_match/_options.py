@@ -200,7 +200,13 @@ class MatchOptions:
         "newton" otherwise (the envelope discrepancy's derivatives come from the stencils)."""
         if self.optimizer is not None:
             return self.optimizer
-        return "bfgs" if self.interpolation == "bilinear" and self.blur_kind != "envelope" else "newton"
+        return "bfgs" if self.analytic_gradient else "newton"
+
+    @property
+    def analytic_gradient(self) -> bool:
+        """Whether e's gradient is analytic: the paper's e looked up bilinearly (the envelope's
+        derivatives always come from the stencils)."""
+        return self.interpolation == "bilinear" and self.blur_kind != "envelope"
 
     def weight(self, known_cells_b):
         """K of eq. (8) for a map B with ``known_cells_b`` known cells."""
