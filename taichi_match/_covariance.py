@@ -25,7 +25,7 @@ and adds the covariance of the plateau of e, an error the Hessian cannot see (``
 import numpy as np
 
 __all__ = ["covariance_from_hessian", "covariance_floor", "plateau_sd", "centroid_metric", "calibrate",
-           "CALIBRATED_COVARIANCE_SCALE", "RESIDUAL_EXPONENT", "RESIDUAL_MIN"]
+           "CALIBRATED_COVARIANCE_SCALE", "CALIBRATION", "RESIDUAL_EXPONENT", "RESIDUAL_MIN"]
 
 # s of the calibrated covariance, s * max(q, RESIDUAL_MIN)**RESIDUAL_EXPONENT * H(e)^-1 + plateau
 # (``calibrate``; q the residual, e per wall compared). Fitted with the exponent where no
@@ -37,19 +37,26 @@ __all__ = ["covariance_from_hessian", "covariance_floor", "plateau_sd", "centroi
 # Refitted when walls on unknown cells next to the other map's walls started paying their
 # distance (``_envelope``): matches became more accurate and their Hessians smoother, and the
 # previous model (11, 0.65) was 1.7x conservative in variance; and again after the coarse
-# levels' envelope became the maximum over walls (4.75 -> 4.25). Valid for the default options.
+# levels' envelope became the maximum over walls (4.75 -> 4.25). Valid for the default options
+# (the envelope looked up at the nearest cell).
 CALIBRATED_COVARIANCE_SCALE = 4.25
 RESIDUAL_EXPONENT = 0.55
+# (s, exponent) per lookup of the envelope (``MatchOptions.interpolation``). Looked up bilinearly
+# the envelope is smooth, its Hessian larger, and the nearest cell's model 4x conservative in
+# variance (real-map crops: mean NEES 0.78; cycles 1.96); fitted the same way (2026-12-06, 392
+# cycles, 384 crops of seeds 0 and 1): cycles 3.01, crops 2.93, a map against itself 1.97
+# (conservative, as with the nearest cell), crop seed 3 held out 2.53 (docs/slam.md, 2026-12-06).
+CALIBRATION = {"nearest": (CALIBRATED_COVARIANCE_SCALE, RESIDUAL_EXPONENT), "bilinear": (3.0, 0.9)}
 # q is taken as at least this: maps that agree exactly (a map against itself) keep a share of H^-1,
 # and with it the huge variance along a degenerate direction.
 RESIDUAL_MIN = 0.01
 
 
-def calibrate(inverse_hessian, residual, floor):
-    """The calibrated covariance ``s * max(residual, RESIDUAL_MIN)**RESIDUAL_EXPONENT *
-    inverse_hessian + floor`` (s ``CALIBRATED_COVARIANCE_SCALE``; ``floor`` from
-    ``covariance_floor`` of ``plateau_sd``)."""
-    return CALIBRATED_COVARIANCE_SCALE * max(residual, RESIDUAL_MIN) ** RESIDUAL_EXPONENT * inverse_hessian + floor
+def calibrate(inverse_hessian, residual, floor, interpolation: str = "nearest"):
+    """The calibrated covariance ``s * max(residual, RESIDUAL_MIN)**a * inverse_hessian + floor``
+    ((s, a) ``CALIBRATION[interpolation]``; ``floor`` from ``covariance_floor`` of ``plateau_sd``)."""
+    scale, exponent = CALIBRATION[interpolation]
+    return scale * max(residual, RESIDUAL_MIN) ** exponent * inverse_hessian + floor
 
 
 def centroid_metric(centroid, spread, theta):

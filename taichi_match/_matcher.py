@@ -164,7 +164,7 @@ class Matcher:
         residual = float(end.discrepancy) / max(comparison[0], 1)
         plateau = min(plateau_sd(*b_in_a) * prep_a.resolution, plateau_sd(*a_in_b) * prep_b.resolution)
         floor = covariance_floor(plateau, prep_b.centroid, prep_b.spread, pose[2])
-        calibrated = calibrate(covariance / opts.covariance_scale, residual, floor)
+        calibrated = calibrate(covariance / opts.covariance_scale, residual, floor, opts.interpolation)
         proof = evidence(comparison, pose, calibrated, degenerate, prep_b.centroid, prep_b.spread)
         accepted = proof.accepts(status.converged) and not _ambiguous(hypotheses) and complete is not False
         return MatchResult(

@@ -96,8 +96,9 @@ class MatchResult:
     def calibrated_covariance(self):
         """The covariance to put in a pose graph: ``H(e)^-1`` scaled with the residual, plus the
         plateau's ``covariance_floor`` (``_covariance.calibrate``, where its fit is described;
-        valid for the default options)."""
-        return calibrate(self.covariance / self.options.covariance_scale, self.residual, self.covariance_floor)
+        fitted for the envelope looked up either way)."""
+        return calibrate(self.covariance / self.options.covariance_scale, self.residual, self.covariance_floor,
+                         self.options.interpolation)
 
     # OptimizeResult-style aliases
     @property

@@ -696,7 +696,7 @@ def main(argv=None):
                            "default 0, see SlamOptions.workers)")
     slam.add_argument("--front-end-inflation", type=float, metavar="X",
                       help="the front end's scan-to-submap edges enter the graph with X times their match "
-                           "covariance (default 4, see SlamOptions.front_end_inflation)")
+                           "covariance (default 6, see SlamOptions.front_end_inflation)")
     slam.add_argument("--front-end-levels", type=int, metavar="N",
                       help="pyramid levels of the front end's matches (default 2, see SlamOptions.scan_matcher)")
     slam.add_argument("--front-end-lookup", choices=("bilinear", "nearest"),

@@ -219,6 +219,15 @@ def test_calibrated_covariance_uses_the_published_model(corridor_map, matcher):
     assert len(res.degenerate) == 1 and res.calibrated_covariance[0, 0] > 1.0
 
 
+def test_calibrated_covariance_of_the_bilinear_lookup_uses_its_published_model(corridor_map, matcher):
+    # the README's model for interpolation="bilinear" (the README's numbers, not the code's
+    # constants): 3.0 * max(q, 0.01)**0.9 * H(e)^-1 + plateau
+    res = matcher.match(corridor_map, corridor_map, (0.1, 0.2, 0.05), interpolation="bilinear")
+    assert res.options.interpolation == "bilinear" and res.options.blur_kind == "envelope"
+    assert np.allclose(res.calibrated_covariance,
+                       3.0 * max(res.residual, 0.01) ** 0.9 * res.covariance + res.covariance_floor)
+
+
 def test_coarse_to_fine_levels_reach_the_same_answer(corridor_map):
     from taichi_match._pyramid import coarsen
 
