@@ -100,12 +100,13 @@ class Matcher:
     def prepare(self, grid: GridMap, blur: Optional[float] = None, blur_kind: Optional[str] = None,
                 blur_growth: Optional[float] = None, evidence: Optional[str] = None,
                 levels: Optional[int] = None, coarse_from: Optional[PreparedMap] = None) -> PreparedMap:
-        """Prepare ``grid`` for matching once (cached for as long as the map lives): blurred, and
-        everything a match through ``levels`` pyramid levels reads (the matcher's options fill in
-        what is not given). A mapping loop calls this when a submap is finished, so that its
-        matches cost only the matching. ``coarse_from``: a prepared earlier version of the same
-        map (a submap before its latest scan), whose coarser pyramid levels are taken over when
-        ``grid`` is prepared now: only the given level is made (``PreparedMap.share_coarser``)."""
+        """Prepare ``grid`` for matching once (cached for as long as the map lives): blurred, with
+        the pyramid levels and wall distances a match through ``levels`` levels reads (the
+        matcher's options fill in what is not given; ``PreparedMap.ready``). A mapping loop calls
+        this when a submap is finished, so that its matches cost only the matching.
+        ``coarse_from``: a prepared earlier version of the same map (a submap before its latest
+        scan), whose coarser pyramid levels are taken over when ``grid`` is prepared now: only the
+        given level is made (``PreparedMap.share_coarser``)."""
         check_not_forked()              # before the cache's lock, which a parent's thread may have held
         if not isinstance(grid, GridMap):
             raise InvalidMapError(f"expected a GridMap; got {type(grid).__name__}")

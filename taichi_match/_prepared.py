@@ -285,14 +285,14 @@ class PreparedMap:
 
     def ready(self, levels: int):
         """Make now what a match through ``levels`` pyramid levels reads of this map in either
-        role: the levels, the verdict's wall distances, the rows of known cells and their moments
-        (each once)."""
+        role: the levels (their conflict grids and walls) and the verdict's wall distances (each
+        once). What only B's role reads (the rows of known cells, their moments) is made when
+        first read: a mapping loop's target, always A, never needs it (measured on the front
+        end's matches, 2026-12-06: edmonton 9.5 -> 8.6 ms, seattle 7.0 -> 6.4, the same bits)."""
         if levels > self._ready:
             _ = self.wall_distance
-            _ = self._moments
             for k in range(levels):
-                level = self.level(k)
-                _ = level.rows
+                self.level(k)
             self._ready = levels
 
     def level(self, k):
