@@ -1297,6 +1297,7 @@ def _optimise(gtsam, graph, values, keys):
     params.setMaxIterations(100)
     return _poses(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
 
+
 def _values(gtsam, est, keys):
     values = gtsam.Values()
     for k in keys:
