@@ -182,9 +182,9 @@ def jittered(log, seed, size=1e-6):
 def spread_table(spreads):
     audited = all(r.get("disagreements") is not None for rows in spreads.values() for r in rows)
     lines = ["| log | runs | ATE m (min / median / max) | ATE deg | RPE10 m | RPE10 deg | wrong loops "
-             "| runs within the ATE target (0.10 m and 1 deg) |"
+             "| runs within the ATE target (0.10 m and 1 deg) | map misfit cm (no reference) |"
              + (" audit: disagreeing submap pairs (min / median / max), runs with a repair |" if audited else ""),
-             "|---|---|---|---|---|---|---|---|" + ("---|" if audited else "")]
+             "|---|---|---|---|---|---|---|---|---|" + ("---|" if audited else "")]
     for name, rows in spreads.items():
         cell = lambda key, fmt: " / ".join(format(v, fmt) for v in np.percentile([r[key] for r in rows], [0, 50, 100]))  # noqa: E731
         within = sum(r["ate_m"] <= 0.10 and r["ate_deg"] <= 1.0 for r in rows)
@@ -192,9 +192,10 @@ def spread_table(spreads):
         if audited:
             pairs = " / ".join(f"{v:.0f}" for v in np.percentile([r["disagreements"][0] for r in rows], [0, 50, 100]))
             audit = f" {pairs}, {sum(r['disagreements'][1] > 0 for r in rows)} |"
+        misfit = " / ".join(f"{100 * v:.3f}" for v in np.percentile([r["misfit"][0] for r in rows], [0, 50, 100]))
         lines.append(f"| {name} | {len(rows)} | {cell('ate_m', '.3f')} | {cell('ate_deg', '.2f')} "
                      f"| {cell('rpe_m', '.3f')} | {cell('rpe_deg', '.2f')} | {cell('loops_wrong', '.0f')} "
-                     f"| {within} |" + audit)
+                     f"| {within} | {misfit} |" + audit)
     return "\n".join(lines)
 
 
