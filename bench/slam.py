@@ -55,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from taichi_match import compose, inverse, wrap_angle
-from taichi_match.evaluation import align_se2, trajectory_errors
+from taichi_match.evaluation import align_se2, frame_reference, trajectory_errors
 from taichi_match.logs import read_carmen, read_tum
 from taichi_match.slam import Slam, SlamOptions
 
@@ -66,24 +66,12 @@ LOGS = Path(__file__).resolve().parents[2] / "shared" / "logs"
 TARGETS = {"ate_m": 0.10, "ate_deg": 1.0, "rpe_m": 0.03, "rpe_deg": 0.3}
 
 
-def true_frame(members, reference):
-    """The reference pose of a submap's frame: the rigid motion that best carries the poses its
-    scans were cast at (in the frame) onto their reference poses (rotation: the mean angle;
-    translation: the mean offset), so a frame is judged by the whole grid the match saw."""
-    scans, poses = members
-    ref = reference[scans]
-    theta = math.atan2(np.sin(ref[:, 2] - poses[:, 2]).mean(), np.cos(ref[:, 2] - poses[:, 2]).mean())
-    c, s = math.cos(theta), math.sin(theta)
-    moved = poses[:, :2] @ np.array([[c, s], [-s, c]])
-    t = (ref[:, :2] - moved).mean(axis=0)
-    return np.array([t[0], t[1], theta])
-
-
 def loop_error(loop, reference):
     """(metres, degrees): a loop closure's relative pose against the reference's relative pose of
     the two nodes its edge joins: a scan's reference pose where a submap's frame is its first
-    scan's node (the default), ``true_frame`` where it is a node of its own (``submap_frames``)."""
-    fa, fb = (reference[key] if key < len(reference) else true_frame(m, reference)
+    scan's node, ``evaluation.frame_reference`` where it is a node of its own (``submap_frames``,
+    the default)."""
+    fa, fb = (reference[key] if key < len(reference) else frame_reference(*m, reference)
               for key, m in zip(loop["frames"], loop["members"]))
     e = compose(inverse(compose(inverse(fa), fb)), loop["pose"])
     return float(np.hypot(e[0], e[1])), float(np.degrees(wrap_angle(e[2])))

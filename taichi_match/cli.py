@@ -400,7 +400,7 @@ def _slam(args):
                                                ("max_ray_length", args.max_ray),
                                                ("free_margin", args.free_margin),
                                                ("target_refresh", args.target_refresh),
-                                               ("submap_frames", args.submap_frames or None),
+                                               ("submap_frames", args.submap_frames),
                                                ("share_coarse", args.share_coarse or None),
                                                ("crop_target", args.crop_target or None),
                                                ("loop_radius", args.loop_radius),
@@ -683,8 +683,9 @@ def main(argv=None):
     slam.add_argument("--solver", choices=("batch", "isam2"),
                       help="the pose graph's optimisation after each submap: batch Levenberg-Marquardt (default) or "
                            "incremental iSAM2, for long runs (see SlamOptions.solver)")
-    slam.add_argument("--submap-frames", action="store_true",
-                      help="give each submap its own node in the pose graph (see SlamOptions.submap_frames)")
+    slam.add_argument("--submap-frames", action=argparse.BooleanOptionalAction,
+                      help="give each submap its own node in the pose graph (default), or tie it to its first "
+                           "scan's node (see SlamOptions.submap_frames)")
     slam.add_argument("--share-coarse", action="store_true",
                       help="prepare only the finest level of the front end's target for each scan, its coarser "
                            "levels once per target (see SlamOptions.share_coarse)")

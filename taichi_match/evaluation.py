@@ -6,15 +6,20 @@
 - RPE over ``delta`` scans: for each pair (i, i + delta) the relative motion of the estimate
   against the reference's, ``E = (Q_i^-1 Q_i+d)^-1 (P_i^-1 P_i+d)``; the RMSE of |E|'s translation
   and of its angle.
+- A submap frame's reference pose (``frame_reference``): the rigid motion that carries the poses
+  its scans were cast at, in the frame, onto their reference poses, so a frame is judged by the
+  whole grid a match saw.
 
 Poses (N, 3) as (x, y, theta), metres and radians, one row per scan in both; degrees out.
 """
+
+import math
 
 import numpy as np
 
 from ._se2 import compose, inverse, wrap_angle
 
-__all__ = ["align_se2", "trajectory_errors"]
+__all__ = ["align_se2", "frame_reference", "trajectory_errors"]
 
 
 def align_se2(poses, reference):
@@ -52,3 +57,31 @@ def trajectory_errors(poses, reference, delta: int = 10) -> dict:
     else:
         out["rpe_m"] = out["rpe_deg"] = float("nan")
     return out
+
+
+def frame_reference(scans, poses, reference) -> np.ndarray:
+    """The reference pose (x, y, theta) of a submap's frame.
+
+    Parameters
+    ----------
+    scans : array_like of int
+        The indices, into ``reference``, of the scans the submap holds.
+    poses : array_like, shape (len(scans), 3)
+        The poses those scans were cast at, in the submap's frame.
+    reference : array_like, shape (N, 3)
+        The reference trajectory, one row per scan.
+
+    Returns
+    -------
+    numpy.ndarray
+        The rigid motion that best carries ``poses`` onto ``reference[scans]``: its rotation is
+        the circular mean of the heading offsets, its translation the mean position offset once
+        rotated.
+    """
+    ref = np.asarray(reference, dtype=np.float64)[np.asarray(scans, dtype=np.intp)]
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    theta = math.atan2(np.sin(ref[:, 2] - poses[:, 2]).mean(), np.cos(ref[:, 2] - poses[:, 2]).mean())
+    c, s = math.cos(theta), math.sin(theta)
+    moved = poses[:, :2] @ np.array([[c, s], [-s, c]])
+    t = (ref[:, :2] - moved).mean(axis=0)
+    return np.array([t[0], t[1], theta])

@@ -81,8 +81,9 @@ closures and an optimisation (``SlamResult.add_seconds``; bench/SLAM.md gives ea
 
 Frames: the world frame is the odometry frame of the first scan (its first pose is kept);
 poses are the laser's (x, y, theta), metres and radians. ``SlamResult.poses``: every scan's pose.
-Graph keys: scan k is key k; submap i's frame is key S + i (S scans; ``submap_frames`` only, which
-therefore needs ``run``).
+Graph keys: scan k is key k; with ``submap_frames`` submap i's frame is key ``FRAME_KEY`` + i (2**30
++ i: clear of any scan's key, and within the 32-bit ids g2o's tools read), so frames need no
+knowledge of the log's length and ``add`` runs them as ``run`` does.
 """
 
 import math
@@ -180,6 +181,8 @@ ISAM_STEPS = 2
 # the median ATE over five runs rose on seven shared logs of nine, aces 0.123 -> 0.176 m; with 10 on
 # two: bench/SLAM_loop_ties.md)
 LOOP_TIE_FREE = 10
+# ``submap_frames``: submap i's frame is graph key FRAME_KEY + i (module docstring)
+FRAME_KEY = 1 << 30
 
 
 def scan_accepted(result) -> bool:
@@ -359,7 +362,7 @@ class SlamOptions:
         already there near both its frames do not mostly disagree with it (see the module
         docstring); False: every accepted one enters.
     submap_frames : give each submap its own frame node in the graph (see the module docstring);
-        False: a submap's frame is its first scan's node.
+        False: a submap's frame is its first scan's node (the default before 2026-12-06).
     matcher : the ``MatchOptions`` of the loop-closure matches.
     scan_matcher : the ``MatchOptions`` of the front end's scan-to-submap matches: by default the
         envelope with each wall's cost interpolated between the four cell centres around it
@@ -396,7 +399,7 @@ class SlamOptions:
     front_end_inflation: float = 6.0
     loop_consistency: bool = True
     audit: Optional[str] = "repair"
-    submap_frames: bool = False
+    submap_frames: bool = True
     matcher: MatchOptions = field(default_factory=MatchOptions)
     scan_matcher: MatchOptions = field(default_factory=lambda: MatchOptions(levels=2, interpolation="bilinear"))
 
@@ -519,20 +522,63 @@ class _Submap:
         self.footprint = None         # its Footprint
 
 
+class _ByKey:
+    """Rows indexed by graph key, as a NumPy array's are by position: scan k's row at key k,
+    submap i's frame's at ``FRAME_KEY`` + i; each part grows (doubling) as rows are set. Indexed
+    by a key, a key and a column, a list or array of keys, or a slice (of the scans' rows)."""
+
+    def __init__(self, tail=()):
+        self._parts = [np.zeros((16,) + tail), np.zeros((4,) + tail)]        # scans', frames'
+
+    def __getitem__(self, index):
+        key, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
+        if isinstance(key, slice):
+            return self._parts[0][(key,) + rest]
+        keys = np.asarray(key, dtype=np.int64)
+        if keys.ndim == 0:
+            frame = int(keys) >= FRAME_KEY
+            return self._parts[frame][(int(keys) - FRAME_KEY * frame,) + rest]
+        frames = keys >= FRAME_KEY
+        out = np.empty(keys.shape + self._parts[0].shape[1:])
+        out[~frames] = self._parts[0][keys[~frames]]
+        out[frames] = self._parts[1][keys[frames] - FRAME_KEY]
+        return out[(slice(None),) + rest]
+
+    def __setitem__(self, index, value):
+        key, rest = (index[0], index[1:]) if isinstance(index, tuple) else (index, ())
+        keys = np.asarray(key, dtype=np.int64)
+        if keys.ndim == 0:
+            frame = int(keys) >= FRAME_KEY
+            row = int(keys) - FRAME_KEY * frame
+            self._grown(frame, row)[(row,) + rest] = value
+            return
+        value = np.asarray(value, dtype=np.float64)
+        for frame, chosen in ((0, keys < FRAME_KEY), (1, keys >= FRAME_KEY)):
+            if chosen.any():
+                rows = keys[chosen] - FRAME_KEY * frame
+                self._grown(frame, int(rows.max()))[(rows,) + rest] = value[chosen] if value.ndim else value
+
+    def _grown(self, part, row):
+        old = self._parts[part]
+        if row >= len(old):
+            new = np.zeros((max(row + 1, 2 * len(old)),) + old.shape[1:])
+            new[:len(old)] = old
+            self._parts[part] = new
+        return self._parts[part]
+
+
 class _Mapping:
     """The state of one run of the mapping loop (``Slam.add``). Arrays indexed by scan (``odo``,
-    ``usable``, ``castable``) or by graph key (``est``, ``travelled``) grow as scans come;
-    ``frame_keys``: the first submap frame's key with ``submap_frames`` (the log's length)."""
+    ``usable``, ``castable``) grow as scans come; ``est`` and ``travelled`` are by graph key
+    (``_ByKey``)."""
 
-    def __init__(self, gtsam, n, options):
+    def __init__(self, gtsam, options):
         self.gtsam = gtsam
-        self.frame_keys = n
-        size = 1 if n is None else n + n // (options.submap_scans // 2) + 2      # scans and frames
-        self.est = np.zeros((size, 3))            # scans' poses, then the submaps' frames (graph keys)
-        self.travelled = np.zeros(size)           # odometry path length up to each scan (a frame: its first scan's)
-        self.odo = np.zeros((size, 3))
-        self.usable = np.zeros(size, dtype=bool)  # whether a scan has a reading the submaps would cast
-        self.castable = np.zeros(size, dtype=bool)    # scans the open submaps are cast from (module docstring)
+        self.est = _ByKey((3,))                   # the scans' poses and the submaps' frames'
+        self.travelled = _ByKey()                 # odometry path length up to each scan (a frame: its first scan's)
+        self.odo = np.zeros((1, 3))
+        self.usable = np.zeros(1, dtype=bool)  # whether a scan has a reading the submaps would cast
+        self.castable = np.zeros(1, dtype=bool)    # scans the open submaps are cast from (module docstring)
         self.scans = []
         self.graph = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
@@ -550,8 +596,8 @@ class _Mapping:
 
     def grow(self, size):
         """Room for ``size`` scans (doubling)."""
-        if size > len(self.est):
-            for name in ("est", "travelled", "odo", "usable", "castable"):
+        if size > len(self.odo):
+            for name in ("odo", "usable", "castable"):
                 old = getattr(self, name)
                 new = np.zeros((max(size, 2 * len(old)),) + old.shape[1:], dtype=old.dtype)
                 new[:len(old)] = old
@@ -738,7 +784,7 @@ class Slam:
             self._check_step(k, odo[k - 1], odo[k])
         if not any(self._usable(scan) for scan in scans):     # before the loop, not at the final map
             raise InvalidOptionError(NO_BEAM)
-        self._begin(n)
+        self._begin()
         try:
             for k, scan in enumerate(scans):
                 self._add(scan)
@@ -755,12 +801,11 @@ class Slam:
         submap). ``finish`` ends the run. A scan refused (InvalidOptionError: see
         ``_checked_scan``, and timestamps that do not increase, an odometry jump beyond a ray's
         reach) leaves the run as it was; any other error part-way breaks the run (then
-        SlamRunError until ``close``). The scan is copied: its arrays may be reused. Not with
-        ``submap_frames`` (its frames' graph keys follow the scans': ``run``)."""
+        SlamRunError until ``close``). The scan is copied: its arrays may be reused."""
         return self._add(_checked_scan(scan))
 
     def _add(self, scan):
-        m = self._mapping if self._mapping is not None else self._begin(None)
+        m = self._mapping if self._mapping is not None else self._begin()
         self._check_unbroken()
         t_add = time.perf_counter()
         k = len(m.scans)
@@ -811,15 +856,12 @@ class Slam:
             raise InvalidOptionError("no usable scan was added: no map yet")
         return scans_to_grid(m.scans, m.est[:len(m.scans)], resolution=self.options.resolution, model=self._map_model)
 
-    def _begin(self, n):
-        """A new run; ``n``: the log's length when known (``run``), which ``submap_frames`` needs."""
-        if self.options.submap_frames and n is None:
-            raise InvalidOptionError("submap_frames numbers the submaps' frames after the scans, so it needs the "
-                                     "whole log: use Slam.run")
+    def _begin(self):
+        """A new run."""
         gtsam = _gtsam()
         self._helpers = [helper for helper in (Helper.start(self._matcher.options)
                                                for _ in range(self.options.workers)) if helper]
-        self._mapping = _Mapping(gtsam, n, self.options)
+        self._mapping = _Mapping(gtsam, self.options)
         self._counts = {}             # submap index -> (BeamCounts, scans counted), since the last optimisation
         self._tied = 0                          # loop-closure candidates not matched: already tied
         return self._mapping
@@ -973,11 +1015,11 @@ class Slam:
                           disagreements=disagreements, add_seconds=np.array(m.add_seconds))
 
     def _open_submap(self, m, k):
-        """A new submap from scan ``k`` on. With ``submap_frames`` its frame (graph key: the log's
-        length + its index) starts at the scan's estimate, tied to it by a member edge; else its
-        frame is the scan's own node."""
+        """A new submap from scan ``k`` on. With ``submap_frames`` its frame (graph key ``FRAME_KEY``
+        + its index) starts at the scan's estimate, tied to it by a member edge; else its frame is
+        the scan's own node."""
         index = len(m.done) + len(m.submaps)
-        submap = _Submap(index, k, m.frame_keys + index if self.options.submap_frames else k)
+        submap = _Submap(index, k, FRAME_KEY + index if self.options.submap_frames else k)
         submap.scans.append(k)
         if self.options.submap_frames:
             m.est[submap.key] = m.est[k]

@@ -10,7 +10,7 @@ import pytest
 
 from taichi_match import InvalidOptionError, LogFormatError, Matcher, compose, inverse, transform_points, wrap_angle
 from taichi_match.cli import main
-from taichi_match.evaluation import trajectory_errors
+from taichi_match.evaluation import frame_reference, trajectory_errors
 from taichi_match.logs import LaserLog, read_carmen, read_tum, write_carmen
 from taichi_match.simulate import cast_scan, floor_plan, simulate_log
 
@@ -32,6 +32,30 @@ def mapped(simulated):
 @pytest.fixture(scope="module")
 def short_run():
     return simulate_log(1, laps=0.4)
+
+
+def _node_truth(loop, truth):
+    """The exact poses of the two nodes a loop closure joins: a scan's own; a submap's frame (a
+    node of its own, ``submap_frames``) the motion that carries its scans' cast poses onto their truth."""
+    return [truth[key] if key < len(truth) else frame_reference(*members, truth)
+            for key, members in zip(loop["frames"], loop["members"])]
+
+
+def test_frame_reference_recovers_a_known_frame():
+    """Scans placed in a known frame F (their poses in it: F^-1 composed with their truth) give F
+    back, to rounding, also with the angles wrapped around +-pi; and a mean where the scans
+    disagree (an oracle by hand: two scans whose frames differ by a translation only)."""
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        truth = np.column_stack([rng.uniform(-20, 20, (30, 2)), rng.uniform(-np.pi, np.pi, 30)])
+        frame = np.array([*rng.uniform(-20, 20, 2), rng.uniform(-np.pi, np.pi)])
+        scans = rng.choice(30, 8, replace=False)
+        in_frame = np.array([compose(inverse(frame), truth[j]) for j in scans])
+        got = frame_reference(scans, in_frame, truth)
+        np.testing.assert_allclose(got[:2], frame[:2], atol=1e-9)
+        assert abs(wrap_angle(got[2] - frame[2])) < 1e-12
+    truth = np.array([[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    np.testing.assert_allclose(frame_reference([0, 1], [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], truth), [1.5, 0.0, 0.0])
 
 
 def test_simulated_run_recovers_the_truth(simulated, mapped):
@@ -82,8 +106,8 @@ def test_simulated_run_loop_closures_against_the_truth(simulated, mapped):
 
     truth = simulated.truth
     edges = [loop for loop in mapped.loops if loop["edge"]]
-    errors = [compose(inverse(compose(inverse(truth[a]), truth[b])), loop["pose"])
-              for loop in edges for a, b in [loop["frames"]]]
+    errors = [compose(inverse(compose(inverse(a), b)), loop["pose"])
+              for loop in edges for a, b in [_node_truth(loop, truth)]]
     wrong = [e for e in errors if math.hypot(e[0], e[1]) > 0.2 or abs(math.degrees(wrap_angle(e[2]))) > 1.0]
     assert len(edges) >= 100 and len(wrong) <= 15, (len(wrong), len(edges))
 
@@ -118,14 +142,10 @@ def test_loop_closures_see_older_submaps_as_the_graph_places_them(simulated, mon
     assert recast, "no submap was cast again"
 
 
-def test_simulated_run_with_submap_frames_meets_every_trajectory_target(simulated):
-    """With ``submap_frames`` (not the default: it loses on five real logs) and the front end's
-    edges not inflated (``front_end_inflation`` 1, as when it was measured) the same run meets the
-    RPE target in degrees too: 0.23-0.32 over five runs with the odometry moved by a micrometre
-    (bench/SLAM_submap_frames.md), so this pins the run, not a margin. With the default inflation
-    (4) it does not (0.37 degree, 2026-12-05)."""
-    errors = trajectory_errors(Slam(submap_frames=True, front_end_inflation=1.0).run(simulated.log).poses,
-                               simulated.truth)
+def test_simulated_run_with_submap_frames_off_meets_the_trajectory_targets(simulated):
+    """With each submap's frame its first scan's node (``submap_frames=False``, the default before
+    2026-12-06) the simulated run still meets the trajectory targets (bench/SLAM_before_submap_frames.md)."""
+    errors = trajectory_errors(Slam(submap_frames=False).run(simulated.log).poses, simulated.truth)
     assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0, errors
     assert errors["rpe_m"] <= 0.03 and errors["rpe_deg"] <= 0.3, errors
 
@@ -173,8 +193,8 @@ def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
         if loop["evidence"].walls_compared < 150:            # three times the verdict's minimum
             continue
         well_supported += 1
-        a, b = loop["frames"]
-        off = np.asarray(loop["pose"]) - compose(inverse(simulated.truth[a]), simulated.truth[b])
+        a, b = _node_truth(loop, simulated.truth)
+        off = np.asarray(loop["pose"]) - compose(inverse(a), b)
         assert abs(math.hypot(moved[0], moved[1]) - 0.8) < 0.05, moved
         assert math.hypot(off[0], off[1]) < 0.05 and abs(wrap_angle(off[2])) < math.radians(0.25), off
     assert well_supported >= 2
@@ -299,14 +319,15 @@ def test_outputs_load(short_run, tmp_path, frames):
     n, m = len(short_run.log), len(result.frames)
     half = result.options.submap_scans // 2
     assert m == (n - 1) // half + 1                                   # a submap every ``half`` scans
-    if frames:                                                        # scans, then the submaps' frames
-        assert values.size() == n + m and graph.size() >= n - 1 + n  # odometry, a match or member edge per scan
+    if frames:                                        # scans 0..n-1, then frame i at 2**30 + i
+        assert sorted(values.keys()) == list(range(n)) + [2**30 + i for i in range(m)]
+        assert graph.size() >= n - 1 + n                              # odometry, a match or member edge per scan
     else:                                                             # a frame is its first scan's node
-        assert values.size() == n and graph.size() >= n - 1
+        assert sorted(values.keys()) == list(range(n)) and graph.size() >= n - 1
         np.testing.assert_array_equal(result.frames, result.poses[::half])
-    for k in range(values.size()):
+    for k in values.keys():
         pose = values.atPose2(k)
-        expected = result.poses[k] if k < n else result.frames[k - n]
+        expected = result.poses[k] if k < n else result.frames[k - 2**30]
         np.testing.assert_allclose([pose.x(), pose.y(), pose.theta()], expected, rtol=1e-5, atol=1e-5)  # g2o: 6 digits
     assert "scan-to-submap matches accepted" in paths["report"].read_text()
     assert result.match_parts.shape == (result.scan_matches[1], 3) and np.all(result.match_parts >= 0)
@@ -351,13 +372,17 @@ def test_cli_slam_refuses_options_that_do_not_apply_to_the_input(short_run, tmp_
 
 
 def test_cli_slam_submap_frames(short_run, tmp_path):
-    """``--submap-frames`` reaches the loop: the graph file holds a node per submap beyond the scans'."""
+    """Submap frames (the default) reach the graph file, a node per submap beyond the scans';
+    ``--no-submap-frames`` leaves the scans' nodes only."""
     log_path = tmp_path / "run.log"
     write_carmen(log_path, short_run.log)
-    assert main(["slam", str(log_path), "--out", str(tmp_path / "out"), "--submap-frames"]) == 0
-    _, values = gtsam.readG2o(str(tmp_path / "out" / "graph.g2o"), False)
-    half = SlamOptions().submap_scans // 2
-    assert values.size() == len(short_run.log) + (len(short_run.log) - 1) // half + 1
+    n, half = len(short_run.log), SlamOptions().submap_scans // 2
+    for flags, nodes in (([], n + (n - 1) // half + 1), (["--submap-frames"], n + (n - 1) // half + 1),
+                         (["--no-submap-frames"], n)):
+        out = tmp_path / f"out{len(flags)}{flags[0][2:4] if flags else ''}"
+        assert main(["slam", str(log_path), "--out", str(out)] + flags) == 0
+        _, values = gtsam.readG2o(str(out / "graph.g2o"), False)
+        assert values.size() == nodes, flags
 
 
 @pytest.mark.parametrize("flag, field, values", [("--share-coarse", "share_coarse", (True, False)),
@@ -992,7 +1017,22 @@ def test_a_refused_scan_leaves_the_run_as_it_was(short_run):
     assert np.array_equal(result.poses, reference.poses)
 
 
-def test_finish_needs_a_usable_scan_and_add_refuses_submap_frames(short_run):
+@pytest.mark.parametrize("frames", [False, True])
+def test_add_then_finish_gives_the_bits_of_run(short_run, frames):
+    """Scan by scan (``add``, ``finish``) is the same run as the whole log at once (``run``), with
+    submap frames (graph keys 2**30 + i, which need no knowledge of the log's length) or without."""
+    reference = Slam(submap_frames=frames).run(short_run.log)
+    slam = Slam(submap_frames=frames)
+    for scan in short_run.log.scans:
+        slam.add(scan)
+    result = slam.finish()
+    assert result.poses.tobytes() == reference.poses.tobytes()
+    assert result.frames.tobytes() == reference.frames.tobytes()
+    assert sorted(result.values.keys()) == sorted(reference.values.keys())
+    assert any(key >= 2**30 for key in result.values.keys()) == frames
+
+
+def test_finish_needs_a_usable_scan(short_run):
     slam = Slam()
     with pytest.raises(InvalidOptionError, match="no scan was added"):
         slam.finish()
@@ -1000,8 +1040,6 @@ def test_finish_needs_a_usable_scan_and_add_refuses_submap_frames(short_run):
     slam.add(blind)
     with pytest.raises(InvalidOptionError, match="no usable beam"):
         slam.finish()
-    with pytest.raises(InvalidOptionError, match="submap_frames"):
-        Slam(submap_frames=True).add(short_run.log.scans[0])
     slam.add(short_run.log.scans[1])                # the refused finish kept the run
     assert len(slam.finish().poses) == 2
     # one scan: its odometry pose, its map
