@@ -19,20 +19,20 @@ degrees off, and the scans matched against it inherited the error (traced on the
 over three jittered runs each, the median ATE fell on the simulated run and 7 of the 8 logs,
 csail rose from 0.107 to 0.116 m, and aces and orebro no longer derail: bench/SLAM.md).
 
-Submap frames. A submap's frame is its first scan's (the anchor's) node in the graph, or, with
-``submap_frames``, a node of its own that starts at the anchor's estimate. A match against a
-submap's grid measures where the grid lies, and the grid is all its scans cast at their estimates
-in the frame: tying the match to one scan's node bakes that scan's error into every edge through
-it (on the simulated run, an anchor at a 92-degree turn was 2.5 degrees off its submap's other
-scans, and seven loop closures through it held it there). With ``submap_frames``, a scan of the
-submap that no match against it measured is tied to the frame by a member edge: their relative
-pose as estimated when the scan joined, with the odometry model's uncertainty of that
-displacement, under the Cauchy kernel, so the frame settles where most of its scans say (as
-Cartographer's submap nodes do). Not the default: over five runs per log (bench/SLAM_submap_frames.md
-against bench/SLAM.md) the simulated run's RPE over 10 scans fell from 0.27-0.50 to 0.23-0.32
-degrees and freiburg-101's and orebro's median ATE fell, but five real logs' rose and two aces
-runs in five derailed instead of one; member edges from the scan's match covariance or a fixed
-1 cm / 0.1 degree derailed aces more often (3 and 4 runs in five).
+Submap frames. A submap's frame is a node of its own in the graph (``submap_frames``, the
+default), which starts at its first scan's (the anchor's) estimate, or, with
+``submap_frames=False``, the anchor's node itself. A match against a submap's grid measures where
+the grid lies, and the grid is all its scans cast at their estimates in the frame: tying the match
+to one scan's node bakes that scan's error into every edge through it (on the simulated run, an
+anchor at a 92-degree turn was 2.5 degrees off its submap's other scans, and seven loop closures
+through it held it there). A scan of the submap that no match against it measured is tied to the
+frame by a member edge: their relative pose as estimated when the scan joined, with the odometry
+model's uncertainty of that displacement, under the Cauchy kernel, so the frame settles where most
+of its scans say (as Cartographer's submap nodes do). Over twenty runs per log (bench/SLAM.md
+against bench/SLAM_before_submap_frames.md) frames brought 145 runs of 180 within the ATE target
+instead of 139, a quarter to a half of the loop closures wrong against the references and a
+crisper map on every log, for a higher RPE over 10 scans in degrees on seven logs and 1.2-1.6
+times the optimisation's time.
 
 Back end. A pose graph over all scans and submap frames (``gtsam``): odometry edges between
 consecutive scans (covariance from ``odometry_sd``), the front end's scan-to-submap edges, member
