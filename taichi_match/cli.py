@@ -408,7 +408,8 @@ def _slam(args):
                                                ("loop_ties", None if args.loop_ties == "off" else args.loop_ties),
                                                ("solver", args.solver),
                                                ("audit", None if args.audit == "off" else args.audit),
-                                               ("front_end_inflation", args.front_end_inflation))
+                                               ("front_end_inflation", args.front_end_inflation),
+                                               ("gate_inflation", args.gate_inflation))
                              if v is not None})
     for field, flag in (("loop_ties", args.loop_ties), ("audit", args.audit)):
         if flag == "off":
@@ -698,6 +699,9 @@ def main(argv=None):
     slam.add_argument("--front-end-inflation", type=float, metavar="X",
                       help="the front end's scan-to-submap edges enter the graph with X times their match "
                            "covariance (default 6, see SlamOptions.front_end_inflation)")
+    slam.add_argument("--gate-inflation", type=float, metavar="X",
+                      help="the odometry gate takes X times a front-end match's covariance (default 2, see "
+                           "SlamOptions.gate_inflation)")
     slam.add_argument("--front-end-levels", type=int, metavar="N",
                       help="pyramid levels of the front end's matches (default 2, see SlamOptions.scan_matcher)")
     slam.add_argument("--front-end-lookup", choices=("bilinear", "nearest"),

@@ -391,7 +391,8 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
                                                  ("--free-margin", "free_margin", (0.2, 0.1)),
                                                  ("--loop-radius", "loop_radius", (8.0, 3.0)),
                                                  ("--audit", "audit", ("report", "repair")),
-                                                 ("--front-end-inflation", "front_end_inflation", (2.0, 6.0))])
+                                                 ("--front-end-inflation", "front_end_inflation", (2.0, 6.0)),
+                                                 ("--gate-inflation", "gate_inflation", (6.0, 2.0))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is the default without them ("off": None)."""
@@ -500,7 +501,10 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("free_margin", 20.0), ("audit", "yes"), ("audit", True),
                                           ("audit", np.array(["repair", "report"])),
                                           ("front_end_inflation", 0.0), ("front_end_inflation", math.inf),
-                                          ("front_end_inflation", "4"), ("front_end_inflation", True)])
+                                          ("front_end_inflation", "4"), ("front_end_inflation", True),
+                                          ("gate_inflation", 0.0), ("gate_inflation", -1.0),
+                                          ("gate_inflation", math.nan), ("gate_inflation", "2"),
+                                          ("gate_inflation", True)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
