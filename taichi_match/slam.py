@@ -331,16 +331,17 @@ class SlamOptions:
         GNC's own solution rose on seven logs of nine (edmonton 0.171 -> 0.196): not kept.
     front_end_inflation : the front end's scan-to-submap edges enter the graph with this many times
         their match's calibrated covariance (the odometry gate uses ``gate_inflation`` times it;
-        loop closures are not inflated). The scans matched against one submap share the error of that submap as cast,
-        which the graph, taking their edges as independent, does not see (against the simulated
-        run's exact truth the marginals' mean NEES a pose was 8.9 uninflated, 4.6 with 4; 3 is
-        consistent). 6 since the bilinear lookup has its own calibration (2026-12-06: 1.5-2.6
-        times tighter in variance on the front end's matches; 6 keeps edmonton's edges, whose
-        residuals are the highest, as they were). Over twenty runs per log (bench/SLAM.md against
-        bench/SLAM_before_calibration.md): 139 runs of 180 within the ATE target against 125; belgioioso's
-        median 0.122 -> 0.100 m, but its RPE over 10 scans 0.47 -> 0.59 degree: more of its front
-        end's matches now fall outside the odometry gate (30 of 389 against 13). The earlier
-        tunings (1, 2, 4, 9 with the nearest cell's calibration): docs/slam.md.
+        loop closures are not inflated). The scans matched against one submap share the error of
+        that submap as cast, which the graph, taking their edges as independent, does not see
+        (against the simulated run's exact truth the marginals' mean NEES a pose was 8.9
+        uninflated, 4.6 with 4; 3 is consistent). 6 since the bilinear lookup has its own
+        calibration (2026-12-06: 1.5-2.6 times tighter in variance on the front end's matches; 6
+        keeps edmonton's edges, whose residuals are the highest, as they were). Over twenty runs
+        per log (bench/SLAM_before_submap_frames.md against bench/SLAM_before_calibration.md): 139
+        runs of 180 within the ATE target against 125; belgioioso's median 0.122 -> 0.100 m, but
+        its RPE over 10 scans 0.47 -> 0.59 degree: more of its front end's matches then fell
+        outside the odometry gate (30 of 389 against 13). The earlier tunings (1, 2, 4, 9 with
+        the nearest cell's calibration): docs/slam.md.
     gate_inflation : the odometry gate compares a front-end match with the odometry's prediction
         using this many times the match's calibrated covariance (plus the odometry step's). A
         scan matched against a submap carries the error of the submap as cast, which the
