@@ -1161,3 +1161,13 @@ def test_scan_times_set_the_first_match_apart():
 
     text = scan_times(SimpleNamespace(add_seconds=np.array([0.001, 0.5, 0.010, 0.020, 0.030])))
     assert "median 20.0 ms" in text and "at most 30 ms" in text and "new process: 500 ms" in text
+
+
+def test_gate_inflation_widens_the_odometry_gate(short_run):
+    """The gate takes ``gate_inflation`` times the match's covariance: made huge, every match the
+    verdict accepted passes it (an edge for each); at the default none passes it that the verdict
+    refused."""
+    wide = Slam(gate_inflation=1e9).run(short_run.log)
+    assert all(record["edge"] == record["accepted"] for record in wide.scans)
+    default = Slam().run(short_run.log)
+    assert all(record["accepted"] or not record["edge"] for record in default.scans)
