@@ -1,9 +1,10 @@
 """The mapping loop's front-end match, this tree against an older revision, in one process.
 
 Pairs as the front end meets them (a submap of 6 scans cast at their odometry poses, and the next
-scan alone, from the odometry's guess) from four shared logs; each pair matched by the old and
-the new package in turn, on fresh maps (nothing cached), so the machine's load falls on both
-alike. Prints both medians, the median of the per-pair time ratios (new / old), and whether every
+scan alone, from the odometry's guess, both in the front end's evidence) from four shared logs;
+each pair matched by the old and the new package in turn with the front end's options
+(``SlamOptions().scan_matcher``), on fresh maps (nothing cached), so the machine's load falls on
+both alike. Prints both medians, the median of the per-pair time ratios (new / old), and whether every
 pose and calibrated covariance is bit-identical.
 
     python bench/ab_front_end.py 7e54b6b            # against that revision (git archive into a temp dir)
@@ -41,7 +42,9 @@ def pairs():
     from taichi_match import compose, inverse
     from taichi_match.logs import read_carmen
     from taichi_match.scans import SensorModel, scans_to_grid
-    from taichi_match.slam import SCAN_MODEL
+    from taichi_match.slam import SCAN_MODEL, SlamOptions
+
+    evidence = SlamOptions().scan_matcher.evidence
 
     out = []
     for name in ("aces", "csail", "edmonton", "fhw"):
@@ -51,9 +54,10 @@ def pairs():
             idx = list(range(k0, k0 + 6))
             origin = inverse(odo[k0])
             poses = np.array([compose(origin, odo[j]) for j in idx])
-            a = scans_to_grid([log.scans[j] for j in idx], poses, resolution=0.05, model=SensorModel(max_ray_length=20))
+            a = scans_to_grid([log.scans[j] for j in idx], poses, resolution=0.05, model=SensorModel(max_ray_length=20),
+                              evidence=evidence)
             b = scans_to_grid([log.scans[k0 + 6]], np.zeros((1, 3)), resolution=0.05,
-                              model=replace(SCAN_MODEL, max_ray_length=20))
+                              model=replace(SCAN_MODEL, max_ray_length=20), evidence=evidence)
             out.append((a, b, compose(origin, odo[k0 + 6])))
     return out
 
@@ -70,7 +74,11 @@ def main():
     with tempfile.TemporaryDirectory() as folder:
         base = old_package(args.revision, folder)
         work = pairs()
-        matchers = {"old": (base, base.Matcher()), "new": (new, new.Matcher())}
+        from taichi_match.slam import SlamOptions
+
+        options = SlamOptions().scan_matcher
+        front_end = dict(levels=options.levels, interpolation=options.interpolation)
+        matchers = {"old": (base, base.Matcher(**front_end)), "new": (new, new.Matcher(**front_end))}
         times = {"old": [], "new": []}
         same = True
         for _ in range(args.rounds):

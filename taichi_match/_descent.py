@@ -7,6 +7,7 @@ the given maps with e, the overlap and the Hessian of e (eq. 12) at the pose, fo
 
 import functools
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -32,7 +33,9 @@ class Descent:
 
     ``status`` is the coarsest level's (the finer ones refine within a fixed budget);
     ``iterations`` sums the levels'; ``cost`` is h and ``discrepancy`` e at ``pose``;
-    ``information`` the Hessian of e there (eq. 12), zero when nothing was matched.
+    ``information`` the Hessian of e there (eq. 12), zero when nothing was matched; ``overlap``
+    None where it was not counted (``MatchOptions.count_overlap``), ``overlapping`` whether the
+    maps overlap at ``pose`` either way.
     """
 
     pose: np.ndarray
@@ -40,8 +43,9 @@ class Descent:
     iterations: int
     cost: float
     discrepancy: float
-    overlap: int
+    overlap: Optional[int]
     information: np.ndarray
+    overlapping: bool
 
 
 def descend(prep_a: PreparedMap, prep_b: PreparedMap, opts: MatchOptions, r0: np.ndarray, weight: float,
@@ -59,7 +63,7 @@ def _level_cost(prep_a, prep_b, level, opts, r0, weight, counter):
 
 
 def _no_overlap(r0, cost_value):
-    return Descent(r0, Status.NO_OVERLAP, 0, cost_value, 0.0, 0, np.zeros((3, 3)))
+    return Descent(r0, Status.NO_OVERLAP, 0, cost_value, 0.0, 0, np.zeros((3, 3)), False)
 
 
 def _newton_levels(prep_a, prep_b, opts, r0, weight, counter):
@@ -90,9 +94,7 @@ def _newton_levels(prep_a, prep_b, opts, r0, weight, counter):
         if level == top:          # the finer levels refine within a fixed budget of launches
             status = res.status
     e, overlap, information = res.extra
-    if overlap is None:
-        overlap = cost.overlap(r)
-    return Descent(r, status, nit, res.fun, e, overlap, information)
+    return _ended(cost, opts, r, status, nit, res.fun, e, overlap, information)
 
 
 def _bfgs_levels(prep_a, prep_b, opts, r0, weight, counter):
@@ -124,5 +126,15 @@ def _bfgs_levels(prep_a, prep_b, opts, r0, weight, counter):
                                   max_step=cost.max_step)
         r = cost.to_r(z)
     # eq. (11)-(12) on the given maps, one launch (two when counting the overlap takes its own)
-    _, _, _, (e, overlap, information) = cost.value_gradient_hessian(cost.to_z(r), count="first")
-    return Descent(r, status, nit, cost_value, e, overlap, information)
+    count = "first" if opts.count_overlap or cost.counts_free else "none"
+    _, _, _, (e, overlap, information) = cost.value_gradient_hessian(cost.to_z(r), count=count)
+    return _ended(cost, opts, r, status, nit, cost_value, e, overlap, information)
+
+
+def _ended(cost, opts, r, status, nit, cost_value, e, overlap, information):
+    """The Descent at ``r``, the overlap counted there unless it came with the last launch or is
+    not asked for (``count_overlap``: then only whether there is any, ``LevelCost.overlaps``)."""
+    if overlap is None and opts.count_overlap:
+        overlap = cost.overlap(r)
+    overlapping = overlap > 0 if overlap is not None else cost.overlaps(r)
+    return Descent(r, status, nit, cost_value, e, overlap, information, overlapping)

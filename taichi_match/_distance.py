@@ -25,7 +25,7 @@ import numpy as np
 from ._launch import launch, row_spread
 from ._taichi import kernel_lock, kernels, taichi
 
-__all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "far"]
+__all__ = ["squared_distance", "wall_distance", "near_squared_distance", "near_weighted_envelope", "wall_runs", "far"]
 
 # near_squared_distance's value where no wall is within reach
 def far(squared: np.ndarray) -> int:
@@ -193,42 +193,54 @@ def _taichi_type(dtype):
     return {"uint8": ti.u8, "uint16": ti.u16, "uint32": ti.u32, "float64": ti.f64}[np.dtype(dtype).name]
 
 
-def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
-    """The stamp kernel's output of ``shape`` for walls at (``rows``, ``cols``) (in any order);
-    unweighted, ``far(out)`` beyond the reach."""
+def wall_runs(rows, cols, weights, shape, reach, merge_weights: bool = True):
+    """The stamp kernels' walls: (rows, starts, ends, weights, first, half) for walls at (``rows``,
+    ``cols``) (in any order; ``weights`` None: all 0) on a grid of ``shape``: runs of walls next to
+    each other on a row (of one weight, unless ``merge_weights``), sorted by row, each run's row,
+    first and last column and weight; ``first[r]`` the first run on row r or later; ``half[d +
+    reach]`` the disc's chord on the row d away. Each run writes a row's cells within reach of it
+    once, where each of its walls would write its own overlapping chord: the same least distance,
+    and for a weighted envelope the same largest value where the profile does not increase (else
+    ``merge_weights`` False: runs of one weight only)."""
     rows = np.ascontiguousarray(rows, dtype=np.int32)
     cols = np.ascontiguousarray(cols, dtype=np.int32)
     reach = int(reach)
     if rows.shape != cols.shape or rows.ndim != 1 or not 0 <= reach <= 2**14:
         raise ValueError(f"rows and cols must be 1-D of one length and 0 <= reach <= 16384; got {rows.shape}, "
                          f"{cols.shape}, {reach}")
-    shape = tuple(int(n) for n in shape)
-    beyond = 0 if weights is not None else np.iinfo(dtype).max
-    if len(rows) == 0 or 0 in shape:
-        return np.full(shape, beyond, dtype=dtype)
     weights = np.zeros(len(rows)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
+    d = np.arange(-reach, reach + 1)
+    half = np.floor(np.sqrt(reach * reach - d * d)).astype(np.int32)     # the disc's chord on row d away
+    while np.any(half * half + d * d > reach * reach):                    # (sqrt rounding up at squares)
+        half -= (half * half + d * d > reach * reach)
+    if len(rows) == 0:
+        return rows, cols, cols, weights, np.zeros(shape[0] + 1, dtype=np.int32), half
     low = int(cols.min())
-    key = rows.astype(np.int64) * (int(cols.max()) - low + 2) + (cols - low)     # row, then column
-    if np.any(key[1:] <= key[:-1]):                     # nonzero()'s walls come in order already
+    key = rows.astype(np.int64) * (int(cols.max()) - low + 2) + (cols - low)         # row, then column
+    if np.any(key[1:] <= key[:-1]):                         # nonzero()'s walls come in order already
         order = np.argsort(key, kind="stable")
         rows, cols, weights = rows[order], cols[order], weights[order]
-    # runs of walls next to each other on a row (of one weight): each run writes a row's cells
-    # within reach of it once, where each of its walls would write its own overlapping chord; the
-    # same least distance, and for the weighted envelope the same largest value where the profile
-    # does not increase (else each wall is a run of its own)
     new = np.ones(len(rows), dtype=bool)
     new[1:] = (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1] + 1)
     if len(weights) > 1:
-        new[1:] |= weights[1:] != weights[:-1] if np.all(np.diff(profile) <= 0) else True
+        new[1:] |= weights[1:] != weights[:-1] if merge_weights else True
     starts = np.flatnonzero(new)
     ends = np.append(starts[1:], len(rows)) - 1
     rows, weights = rows[starts], weights[starts]
     starts, ends = cols[starts], cols[ends]
     first = np.searchsorted(rows, np.arange(shape[0] + 1)).astype(np.int32)
-    d = np.arange(-reach, reach + 1)
-    half = np.floor(np.sqrt(reach * reach - d * d)).astype(np.int32)     # the disc's chord on row d away
-    while np.any(half * half + d * d > reach * reach):                    # (sqrt rounding up at squares)
-        half -= (half * half + d * d > reach * reach)
+    return rows, starts, ends, weights, first, half
+
+
+def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
+    """The stamp kernel's output of ``shape`` for walls at (``rows``, ``cols``) (in any order);
+    unweighted, ``far(out)`` beyond the reach."""
+    shape = tuple(int(n) for n in shape)
+    beyond = 0 if weights is not None else np.iinfo(dtype).max
+    runs = wall_runs(rows, cols, weights, shape, reach, weights is None or bool(np.all(np.diff(profile) <= 0)))
+    if len(runs[0]) == 0 or 0 in shape:
+        return np.full(shape, beyond, dtype=dtype)
+    rows, starts, ends, weights, first, half = runs
     out = np.empty(shape, dtype=dtype) if out is None else out
     # the value beyond reach first, by NumPy: a Taichi loop over the cells runs scalar, about 1 ns
     # a cell here, NumPy's fill a hundredth of that (measured on the mapping loop's front-end

@@ -151,7 +151,7 @@ class Matcher:
         weight = opts.weight(prep_b.n_known)
         end = descend(prep_a, prep_b, opts, r0, weight, counter)
         status = end.status
-        if end.overlap == 0 and status.converged:
+        if not end.overlapping and status.converged:
             status = Status.SEPARATED
         # eq. (11), then what the walls say at the pose (the calibrated covariance, the verdict)
         metric = centroid_metric(prep_b.centroid, prep_b.spread, end.pose[2])
@@ -170,8 +170,8 @@ class Matcher:
         accepted = proof.accepts(status.converged) and not _ambiguous(hypotheses) and complete is not False
         return MatchResult(
             pose=pose, covariance=covariance, information=end.information, degenerate=degenerate,
-            cost=float(end.cost), discrepancy=float(end.discrepancy), overlap=int(end.overlap), prior_weight=weight,
-            initial_pose=r0, iterations=end.iterations, evaluations=counter.poses, launches=counter.launches,
+            cost=float(end.cost), discrepancy=float(end.discrepancy),
+            overlap=None if end.overlap is None else int(end.overlap), prior_weight=weight, initial_pose=r0, iterations=end.iterations, evaluations=counter.poses, launches=counter.launches,
             converged=status.converged, status=status, message=MESSAGES[status],
             seconds=time.perf_counter() - start, accepted=accepted, evidence=proof, covariance_floor=floor,
             residual=residual, options=opts, hypotheses=hypotheses, search_complete=complete,

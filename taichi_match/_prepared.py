@@ -12,7 +12,7 @@ import functools
 import numpy as np
 
 from ._blur import blur, blur_everywhere, wall_transform
-from ._distance import near_squared_distance, near_weighted_envelope
+from ._distance import near_weighted_envelope
 from ._envelope import conflict_grid, envelope_profile, envelope_reach, near_conflict_grid, points_array, wall_points
 from ._errors import InvalidOptionError
 from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted, cells, grid_code, trinary_values, twin
@@ -99,10 +99,10 @@ class PreparedMap:
     def _prepare_envelope(self):
         """The conflict grid and the walls; for the verdict the walls' distances. With few walls
         (laser-built maps: 0.1-2 % of the cells) each wall stamps the disc of the envelope's
-        reach around it: at 1 (trinary maps) its squared distance (``near_squared_distance``),
-        from which the conflict grid is the same bit for bit as from the exact transform; grey
-        (coarse levels) its weighted envelope (``near_weighted_envelope``). Otherwise the exact
-        transforms over every cell (``_blur``)."""
+        reach around it, with the conflict values, in one launch (``near_conflict_grid``): at 1
+        (trinary maps) its squared distance, kept for the verdict, from which the conflict grid is
+        the same bit for bit as from the exact transform; grey (coarse levels) its weighted
+        envelope. Otherwise the exact transforms over every cell (``_blur``)."""
         frame, code = self.frame, self._code
         if code is None:
             self.walls = rows, cols, weights = wall_points(frame)
@@ -111,19 +111,16 @@ class PreparedMap:
             rows, cols = cells(code == OCCUPIED)
             self.walls = rows, cols, weights = rows, cols, np.ones(len(rows))
             ones = len(rows) > 0
-        unknown = ~self.known
+        unknown = code == UNKNOWN if code is not None else ~frame.known
         width = self.blur_width / frame.resolution
         # out to the envelope's reach, and beyond the verdict's conflict distance (``_verdict``)
         reach = self._reach = max(envelope_reach(width), int(np.ceil(CONFLICT_CELLS)) + 1) if width > 0 else 0
         few = width > 0 and 0 < len(rows) * (2 * reach + 1) ** 2 <= STAMP_WORK * unknown.size
         ratio = frame.resolution / self.blur_width if width > 0 else 0.0
         self._stamp = few
-        if few and ones:
-            self._squared = near_squared_distance(rows, cols, frame.shape, reach)
-            self.conflict = near_conflict_grid(None if code is not None else frame.prob, unknown, reach, ratio,
-                                               squared=self._squared)
-        elif few:
-            self.conflict = near_conflict_grid(frame.prob, unknown, reach, ratio, walls=self.walls)
+        if few:
+            self.conflict, self._squared = near_conflict_grid(None if code is not None else frame.prob, unknown,
+                                                              reach, ratio, self.walls, squared=ones)
         else:
             self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), unknown)
 

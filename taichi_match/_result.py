@@ -31,7 +31,8 @@ class MatchResult:
         information, e.g. (1, 0, 0) in a corridor along x.
     cost : h at ``pose`` (eq. 8), on the blurred maps; ``prior_weight`` is the K it used.
     discrepancy : e at ``pose``: eq. (6) on the blurred maps, or the envelope discrepancy.
-    overlap : number of known cells of B that land on known cells of A at ``pose``.
+    overlap : number of known cells of B that land on known cells of A at ``pose``; None where it
+        was not counted (``MatchOptions.count_overlap`` False).
     initial_pose, iterations, evaluations (poses evaluated), launches (batched evaluations),
     converged, status, message, seconds (wall clock of the whole match).
     accepted : the verdict: True when the pose can be trusted (``converged`` only says the
@@ -73,7 +74,7 @@ class MatchResult:
     degenerate: np.ndarray
     cost: float
     discrepancy: float
-    overlap: int
+    overlap: Optional[int]
     prior_weight: float
     initial_pose: np.ndarray
     iterations: int

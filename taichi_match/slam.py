@@ -382,7 +382,8 @@ class SlamOptions:
         docstring); False: every accepted one enters.
     submap_frames : give each submap its own frame node in the graph (see the module docstring);
         False: a submap's frame is its first scan's node (the default before 2026-12-06).
-    matcher : the ``MatchOptions`` of the loop-closure matches.
+    matcher : the ``MatchOptions`` of the loop-closure matches. Both matchers leave the overlap
+        uncounted (``count_overlap=False``): the loop reads the pose, covariance and verdict only.
     scan_matcher : the ``MatchOptions`` of the front end's scan-to-submap matches: by default the
         envelope with each wall's cost interpolated between the four cell centres around it
         (``interpolation="bilinear"``) on two pyramid levels. With the nearest cell's cost a single
@@ -420,8 +421,9 @@ class SlamOptions:
     loop_consistency: bool = True
     audit: Optional[str] = "repair"
     submap_frames: bool = True
-    matcher: MatchOptions = field(default_factory=MatchOptions)
-    scan_matcher: MatchOptions = field(default_factory=lambda: MatchOptions(levels=2, interpolation="bilinear"))
+    matcher: MatchOptions = field(default_factory=lambda: MatchOptions(count_overlap=False))
+    scan_matcher: MatchOptions = field(default_factory=lambda: MatchOptions(levels=2, interpolation="bilinear",
+                                                                            count_overlap=False))
 
     def __post_init__(self):
         if not (isinstance(self.target_refresh, int) and not isinstance(self.target_refresh, bool)

@@ -599,9 +599,10 @@ def test_the_conflict_grid_from_stamped_distances_equals_the_exact_transforms(rn
 
 
 @pytest.mark.parametrize("shape", [(1, 1), (1, 300), (300, 1), (3, 2000), (40, 33)])
-def test_the_conflict_grid_in_row_strips_equals_the_exact_transforms_on_thin_maps(shape, rng):
-    # thin maps split each row into many strips (``_launch.row_strips``), some of them in the
-    # ring off the map; stamped walls at 1 and grey ones against the exact transforms, bit for bit
+def test_the_stamped_conflict_grid_equals_the_exact_transforms_on_thin_maps(shape, rng):
+    # thin maps, whose rows spread over many work items (``_launch.row_spread``) and whose walls'
+    # discs reach past the map's edges; stamped walls at 1 and grey ones against the exact
+    # transforms, bit for bit
     from taichi_match._blur import blur_everywhere, wall_transform
     from taichi_match._envelope import conflict_grid, envelope_profile, near_conflict_grid
 
@@ -616,7 +617,8 @@ def test_the_conflict_grid_in_row_strips_equals_the_exact_transforms_on_thin_map
                                               transform=None if grey else wall_transform(grid)), unknown)
         if grey:
             rows, cols = np.nonzero(prob >= 0.5)
-            got = near_conflict_grid(prob, unknown, reach, 0.5, walls=(rows, cols, prob[rows, cols]))
+            got, squared = near_conflict_grid(prob, unknown, reach, 0.5, (rows, cols, prob[rows, cols]))
+            assert squared is None
             np.testing.assert_allclose(got, exact, rtol=0, atol=1e-6)       # the envelope's two arithmetics
             assert np.array_equal(got < -0.5, exact < -0.5)                   # the same cells unknown
         else:
@@ -624,6 +626,43 @@ def test_the_conflict_grid_in_row_strips_equals_the_exact_transforms_on_thin_map
             assert (prepared._squared is not None) == (shape != (1, 1))     # the stamped path (one cell: too few)
             assert prepared.conflict.tobytes() == exact.tobytes()
     assert len(envelope_profile(reach, 0.5)) == reach * reach + 2
+
+
+@pytest.mark.parametrize("grey, trinary", [(False, True), (False, False), (True, False)])
+def test_the_stamped_conflict_grid_equals_numpy_from_scipy_distances(grey, trinary, rng):
+    # one launch stamps the walls' squared distances (or grey envelope) and the conflict values:
+    # against SciPy's exact distance transform and conflict_grid's NumPy arithmetic, bit for bit
+    # (walls at 1 on a trinary or a probability map; grey walls on a probability map)
+    from scipy.ndimage import distance_transform_edt
+
+    from taichi_match._envelope import conflict_grid, envelope_profile, near_conflict_grid
+
+    shape, reach, ratio = (90, 130), 13, 0.5
+    walls = rng.random(shape) < 0.02
+    prob = np.where(walls, rng.uniform(0.5, 1.0, shape) if grey else 1.0,
+                    0.0 if trinary else rng.uniform(0.0, 0.45, shape))
+    prob[rng.random(shape) < 0.3] = np.nan
+    walls &= ~np.isnan(prob)
+    unknown = np.isnan(prob)
+    rows, cols = np.nonzero(walls)
+    profile = envelope_profile(reach, ratio)
+    got, squared = near_conflict_grid(None if trinary else prob, unknown, reach, ratio,
+                                      (rows, cols, prob[rows, cols]), squared=not grey)
+    if grey:
+        # the grey envelope by brute force: the brightest wall's weight * profile within reach
+        envelope = np.zeros(shape)
+        ii, jj = np.indices(shape)
+        for r, c in zip(rows, cols):
+            q = (ii - r) ** 2 + (jj - c) ** 2
+            envelope = np.maximum(envelope, np.where(q <= reach * reach, prob[r, c] * profile[np.minimum(q, reach * reach)], 0.0))
+        hi = envelope
+    else:
+        exact = np.rint(distance_transform_edt(~walls) ** 2).astype(np.int64)
+        want = np.where(exact <= reach * reach, exact, 255)
+        np.testing.assert_array_equal(squared, want)
+        hi = profile[np.minimum(exact, reach * reach + 1)]
+    hi = np.where(unknown, hi, np.fmax(np.nan_to_num(prob), hi))
+    assert got.tobytes() == conflict_grid(hi, unknown).tobytes()
 
 
 def test_known_cells_moments_equal_the_listed_cells(rng):

@@ -256,7 +256,33 @@ def test_a_minimum_without_overlap_is_reported_as_separated():
         res = match(strip, strip, r0)
         assert res.overlap > 0 or (res.status == Status.SEPARATED and not res.converged)
         statuses.append(res.status)
+        # without the overlap counted, whether there is any still decides SEPARATED
+        uncounted = match(strip, strip, r0, count_overlap=False)
+        assert uncounted.overlap is None and uncounted.status == res.status
+        assert np.array_equal(uncounted.pose, res.pose)
     assert Status.SEPARATED in statuses
+
+
+@pytest.mark.parametrize("options", [MatchOptions(), MatchOptions(levels=2, interpolation="bilinear"),
+                                     MatchOptions(optimizer="bfgs"), MatchOptions.paper(levels=2)])
+def test_a_match_without_the_overlap_counted_is_the_same_match(options, rng):
+    a = corridor()
+    for _ in range(3):
+        r0 = rng.uniform(-1, 1, 3) * (0.3, 0.3, 0.05)
+        counted = Matcher(options).match(a, a, r0)
+        uncounted = Matcher(options.replace(count_overlap=False)).match(a, a, r0)
+        # the envelope's count takes a launch of its own and is left out; the paper's e counts it free
+        assert counted.overlap > 0
+        assert uncounted.overlap == (None if options.blur_kind == "envelope" else counted.overlap)
+        for name in ("pose", "covariance", "calibrated_covariance"):
+            assert np.array_equal(getattr(counted, name), getattr(uncounted, name)), name
+        assert (counted.accepted, counted.status) == (uncounted.accepted, uncounted.status)
+
+
+@pytest.mark.parametrize("value", [1, "yes", None, np.float64(1.0)])
+def test_count_overlap_must_be_a_bool(value):
+    with pytest.raises(InvalidOptionError, match="count_overlap must be True or False"):
+        MatchOptions(count_overlap=value)
 
 
 def test_maps_without_structure_are_reported_as_giving_no_information():
