@@ -9,6 +9,13 @@ pose and calibrated covariance is bit-identical.
 
     python bench/ab_front_end.py 7e54b6b            # against that revision (git archive into a temp dir)
     python bench/ab_front_end.py 7e54b6b --rounds 5
+
+With ``--loop``, the whole mapping loop instead (``slam`` on each named log, default options,
+the old and the new package in turn, ``--rounds`` times): per log the front-end match's median
+(``SlamResult.match_seconds``) and its parts' medians (target preparation, scan preparation,
+match) both ways, the median ms a scan, and whether the trajectories are bit-identical.
+
+    python bench/ab_front_end.py 9fb02c9 --loop edmonton seattle --rounds 2
 """
 
 import argparse
@@ -65,10 +72,13 @@ def pairs():
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("revision", help="the older revision (git)")
-    parser.add_argument("--rounds", type=int, default=3, help="times over the pairs")
+    parser.add_argument("--rounds", type=int, default=3, help="times over the pairs (or the logs)")
+    parser.add_argument("--loop", nargs="+", metavar="LOG", help="the whole mapping loop on these logs instead")
     args = parser.parse_args()
     if not LOGS.is_dir():
         raise SystemExit(f"{LOGS} not found: the laser logs live in ../shared/logs")
+    if args.loop:
+        return loops(args.revision, args.loop, args.rounds)
     import taichi_match as new
 
     with tempfile.TemporaryDirectory() as folder:
@@ -96,6 +106,37 @@ def main():
     print(f"{len(work)} pairs x {args.rounds}: {args.revision} median {1e3 * np.median(old):.2f} ms, this tree "
           f"{1e3 * np.median(now):.2f} ms, median ratio {np.median(now / old):.3f}; poses and covariances "
           f"bit-identical: {same}")
+
+
+def loops(revision, names, rounds):
+    """The mapping loop on each log, the old and the new package in turn (see the module docstring)."""
+    import taichi_match.logs as new_logs
+    import taichi_match.slam as new
+
+    with tempfile.TemporaryDirectory() as folder:
+        base = old_package(revision, folder)
+        import taichi_match_base.logs as old_logs
+        import taichi_match_base.slam as old
+
+        for name in names:
+            path = glob.glob(str(LOGS / name / f"{name}.log*"))[0]
+            logs = {"old": old_logs.read_carmen(path), "new": new_logs.read_carmen(path)}   # each its own LaserLog
+            runs = {"old": [], "new": []}
+            for k in range(rounds):
+                for key, package in (("old", old), ("new", new)) if k % 2 == 0 else (("new", new), ("old", old)):
+                    started = time.perf_counter()
+                    result = package.slam(logs[key])
+                    runs[key].append((result, (time.perf_counter() - started) / len(logs[key].scans)))
+            same = all(np.array_equal(a.poses, b.poses) for (a, _), (b, _) in zip(runs["old"], runs["new"]))
+            for key in ("old", "new"):
+                whole = np.median(np.concatenate([r.match_seconds for r, _ in runs[key]]))
+                parts = np.median(np.vstack([r.match_parts for r, _ in runs[key]]), axis=0)
+                per_scan = np.median([t for _, t in runs[key]])
+                print(f"{name:13s} {key} ({revision if key == 'old' else 'this tree'}): front-end match median "
+                      f"{1e3 * whole:.2f} ms (target {1e3 * parts[0]:.2f}, scan {1e3 * parts[1]:.2f}, match "
+                      f"{1e3 * parts[2]:.2f}), {1e3 * per_scan:.1f} ms a scan")
+            print(f"{name:13s} trajectories bit-identical: {same}", flush=True)
+    del base
 
 
 if __name__ == "__main__":

@@ -127,30 +127,23 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
         raise ValueError("grey walls need the map's probabilities")
     h, w = unknown.shape
     out = np.empty((h + 2 * PAD, w + 2 * PAD), dtype=np.float32)
-    out[:PAD], out[h + PAD:], out[PAD:h + PAD, :PAD], out[PAD:h + PAD, w + PAD:] = _OFF_MAP, _OFF_MAP, _OFF_MAP, _OFF_MAP
-    inner = out[PAD:h + PAD, PAD:w + PAD]
-    if prob is None:                            # 1 on known cells, -2 on unknown ones, exactly
-        np.multiply(unknown, np.float32(-3.0), out=inner)
-        inner += np.float32(1.0)
-    else:
-        p = np.ascontiguousarray(prob, dtype=np.float64)
-        np.subtract(1.0, p, out=inner, casting="unsafe")          # in float64, rounded to float32 once
-        np.copyto(inner, np.float32(-2.0), where=unknown)
+    out[:PAD], out[h + PAD:] = _OFF_MAP, _OFF_MAP                 # the ring's rows; its columns in the kernel
     profile = envelope_profile(reach, ratio)
     dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
-    distances = np.full((h, w) if squared else (1, 1), np.iinfo(dtype).max, dtype=dtype)
+    distances = np.empty((h, w) if squared else (1, 1), dtype=dtype)
     rows, cols, weights = walls
     monotone = squared or bool(np.all(np.diff(profile) <= 0))
     rows, starts, ends, weights, first, half = wall_runs(rows, cols, None if squared else weights, (h, w), reach,
                                                          monotone)
-    if len(rows) and h and w:
-        known_cost = (1.0 - profile).astype(np.float32)           # 1 - hi in float64, rounded once
-        unknown_cost = np.float32(-1.0) - known_cost
+    known_cost = (1.0 - profile).astype(np.float32)               # 1 - hi in float64, rounded once
+    unknown_cost = np.float32(-1.0) - known_cost
+    p = np.zeros((1, 1)) if prob is None else np.ascontiguousarray(prob, dtype=np.float64)
+    known = np.ascontiguousarray(unknown).view(np.uint8)
+    if h and w:
         with kernel_lock():
             launch(kernels(_build_conflict),
                    (rows, starts, ends, weights, profile, known_cost, unknown_cost, first, half, row_spread(h),
-                    np.ascontiguousarray(unknown).view(np.uint8),
-                    np.zeros((1, 1)) if prob is None else p, distances, out),
+                    np.array([np.iinfo(dtype).max], dtype=np.int64), known, known.reshape(-1), p, p.reshape(-1), distances, distances.reshape(-1), out, out.reshape(-1)),
                    (prob is not None, not squared, _taichi_type(dtype)))
     return out, distances if squared else None
 
@@ -162,17 +155,37 @@ def _build_conflict(ti):
                  profile: ti.types.ndarray(dtype=ti.f64, ndim=1), known_cost: ti.types.ndarray(dtype=ti.f32, ndim=1),
                  unknown_cost: ti.types.ndarray(dtype=ti.f32, ndim=1), first: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  half: ti.types.ndarray(dtype=ti.i32, ndim=1), spread: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=2), prob: ti.types.ndarray(dtype=ti.f64, ndim=2),
-                 squared: ti.types.ndarray(ndim=2), out: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                 beyond: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=2), unknown_flat: ti.types.ndarray(dtype=ti.u8, ndim=1),
+                 prob: ti.types.ndarray(dtype=ti.f64, ndim=2), prob_flat: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                 squared: ti.types.ndarray(ndim=2), squared_flat: ti.types.ndarray(ndim=1),
+                 out: ti.types.ndarray(dtype=ti.f32, ndim=2), out_flat: ti.types.ndarray(dtype=ti.f32, ndim=1),
                  grey: ti.template(), weighted: ti.template(), dt: ti.template()):
-        # a row of the map per work item (the rows spread out: ``_launch.row_spread``): the runs
+        # a row of the map per work item (the rows spread out: ``_launch.row_spread``), which
+        # first writes the row's values where no wall reaches (through the flat views: a loop over
+        # 1-D indices runs several times faster than one over 2-D ones here), then stamps the runs
         # of walls within reach rows of it (sorted by row, ``first[r]`` the first on row r or
-        # later) each reach ``half[d + reach]`` cells beyond either end on row d away; the row
+        # later), each reaching ``half[d + reach]`` cells beyond either end on row d away; the row
         # belongs to its work item, so no atomics, and the extrema do not depend on the order
         h, w = unknown.shape[0], unknown.shape[1]
+        width = w + 2 * PAD
         reach = (half.shape[0] - 1) // 2
+        far = ti.cast(beyond[0], dt)                     # the squared distance's value beyond reach
         for i, part in ti.ndrange(h, spread.shape[0]):
             if part == 0:
+                row = (i + PAD) * width
+                for j in range(PAD):
+                    out_flat[row + j] = ti.f32(_OFF_MAP)
+                    out_flat[row + PAD + w + j] = ti.f32(_OFF_MAP)
+                cell, row = i * w, row + PAD
+                for j in range(w):
+                    c = ti.f32(1.0)
+                    if ti.static(grey):
+                        c = ti.cast(1.0 - prob_flat[cell + j], ti.f32)
+                    out_flat[row + j] = ti.select(unknown_flat[cell + j] == 0, c, ti.f32(-2.0))
+                if ti.static(not weighted):
+                    for j in range(w):
+                        squared_flat[cell + j] = far
                 for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
                     di = rows_[k] - i
                     dy2 = di * di
@@ -181,21 +194,20 @@ def _build_conflict(ti):
                     for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
                         dx = ti.max(ti.max(a - j, j - b), 0)
                         q = dy2 + dx * dx
-                        known = unknown[i, j] == 0
+                        known = unknown_flat[cell + j] == 0
                         if ti.static(weighted):          # grey walls: the brightest wins
                             e = weights[k] * profile[q]
                             if known:
-                                out[i + PAD, j + PAD] = ti.min(out[i + PAD, j + PAD],
-                                                               ti.cast(1.0 - ti.max(prob[i, j], e), ti.f32))
+                                out_flat[row + j] = ti.min(out_flat[row + j],
+                                                           ti.cast(1.0 - ti.max(prob_flat[cell + j], e), ti.f32))
                             else:
-                                out[i + PAD, j + PAD] = ti.max(out[i + PAD, j + PAD],
-                                                               ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
-                        elif q < ti.cast(squared[i, j], ti.i32):     # walls at 1: the nearest wins
-                            squared[i, j] = ti.cast(q, dt)
+                                out_flat[row + j] = ti.max(out_flat[row + j], ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
+                        elif q < ti.cast(squared_flat[cell + j], ti.i32):     # walls at 1: the nearest wins
+                            squared_flat[cell + j] = ti.cast(q, dt)
                             c = known_cost[q]
                             if ti.static(grey):
-                                c = ti.cast(1.0 - ti.max(prob[i, j], profile[q]), ti.f32)
-                            out[i + PAD, j + PAD] = ti.select(known, c, unknown_cost[q])
+                                c = ti.cast(1.0 - ti.max(prob_flat[cell + j], profile[q]), ti.f32)
+                            out_flat[row + j] = ti.select(known, c, unknown_cost[q])
 
     return conflict
 
