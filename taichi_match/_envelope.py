@@ -135,15 +135,17 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     monotone = squared or bool(np.all(np.diff(profile) <= 0))
     rows, starts, ends, weights, first, half = wall_runs(rows, cols, None if squared else weights, (h, w), reach,
                                                          monotone)
-    known_cost = (1.0 - profile).astype(np.float32)               # 1 - hi in float64, rounded once
-    unknown_cost = np.float32(-1.0) - known_cost
-    p = np.zeros((1, 1)) if prob is None else np.ascontiguousarray(prob, dtype=np.float64)
-    known = np.ascontiguousarray(unknown).view(np.uint8)
+    costs = np.empty((2, len(profile)), dtype=np.float32)        # by squared distance: known, unknown cells
+    costs[0] = 1.0 - profile                                      # 1 - hi in float64, rounded once
+    np.subtract(np.float32(-1.0), costs[0], out=costs[1])
+    p = np.zeros(1) if prob is None else np.ascontiguousarray(prob, dtype=np.float64).reshape(-1)
     if h and w:
         with kernel_lock():
             launch(kernels(_build_conflict),
-                   (rows, starts, ends, weights, profile, known_cost, unknown_cost, first, half, row_spread(h),
-                    np.array([np.iinfo(dtype).max], dtype=np.int64), known, known.reshape(-1), p, p.reshape(-1), distances, distances.reshape(-1), out, out.reshape(-1)),
+                   (rows, starts, ends, weights, profile, costs, first, half, row_spread(h),
+                    np.array([np.iinfo(dtype).max], dtype=np.int64),
+                    np.ascontiguousarray(unknown).view(np.uint8).reshape(-1), p, distances.reshape(-1),
+                    out.reshape(-1)),
                    (prob is not None, not squared, _taichi_type(dtype)))
     return out, distances if squared else None
 
@@ -152,22 +154,22 @@ def _build_conflict(ti):
     @ti.kernel
     def conflict(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), starts: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  ends: ti.types.ndarray(dtype=ti.i32, ndim=1), weights: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                 profile: ti.types.ndarray(dtype=ti.f64, ndim=1), known_cost: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                 unknown_cost: ti.types.ndarray(dtype=ti.f32, ndim=1), first: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 half: ti.types.ndarray(dtype=ti.i32, ndim=1), spread: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 beyond: ti.types.ndarray(dtype=ti.i64, ndim=1),
-                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=2), unknown_flat: ti.types.ndarray(dtype=ti.u8, ndim=1),
-                 prob: ti.types.ndarray(dtype=ti.f64, ndim=2), prob_flat: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                 squared: ti.types.ndarray(ndim=2), squared_flat: ti.types.ndarray(ndim=1),
-                 out: ti.types.ndarray(dtype=ti.f32, ndim=2), out_flat: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                 profile: ti.types.ndarray(dtype=ti.f64, ndim=1), costs: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                 first: ti.types.ndarray(dtype=ti.i32, ndim=1), half: ti.types.ndarray(dtype=ti.i32, ndim=1),
+                 spread: ti.types.ndarray(dtype=ti.i32, ndim=1), beyond: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: ti.types.ndarray(dtype=ti.f64, ndim=1),
+                 squared: ti.types.ndarray(ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=1),
                  grey: ti.template(), weighted: ti.template(), dt: ti.template()):
         # a row of the map per work item (the rows spread out: ``_launch.row_spread``), which
-        # first writes the row's values where no wall reaches (through the flat views: a loop over
-        # 1-D indices runs several times faster than one over 2-D ones here), then stamps the runs
-        # of walls within reach rows of it (sorted by row, ``first[r]`` the first on row r or
-        # later), each reaching ``half[d + reach]`` cells beyond either end on row d away; the row
-        # belongs to its work item, so no atomics, and the extrema do not depend on the order
-        h, w = unknown.shape[0], unknown.shape[1]
+        # first writes the row's values where no wall reaches, then stamps the runs of walls within
+        # reach rows of it (sorted by row, ``first[r]`` the first on row r or later), each reaching
+        # ``half[d + reach]`` cells beyond either end on row d away; the row belongs to its work
+        # item, so no atomics, and the extrema do not depend on the order. The grids come flat (a
+        # loop over 1-D indices ran several times faster than one over 2-D ones here, and each
+        # array argument costs a launch a few microseconds): the map's h x w cells (h + 1 entries
+        # in ``first``), the conflict grid's (h + 2 PAD) x (w + 2 PAD)
+        h = first.shape[0] - 1
+        w = unknown.shape[0] // h
         width = w + 2 * PAD
         reach = (half.shape[0] - 1) // 2
         far = ti.cast(beyond[0], dt)                     # the squared distance's value beyond reach
@@ -175,17 +177,17 @@ def _build_conflict(ti):
             if part == 0:
                 row = (i + PAD) * width
                 for j in range(PAD):
-                    out_flat[row + j] = ti.f32(_OFF_MAP)
-                    out_flat[row + PAD + w + j] = ti.f32(_OFF_MAP)
+                    out[row + j] = ti.f32(_OFF_MAP)
+                    out[row + PAD + w + j] = ti.f32(_OFF_MAP)
                 cell, row = i * w, row + PAD
                 for j in range(w):
                     c = ti.f32(1.0)
                     if ti.static(grey):
-                        c = ti.cast(1.0 - prob_flat[cell + j], ti.f32)
-                    out_flat[row + j] = ti.select(unknown_flat[cell + j] == 0, c, ti.f32(-2.0))
+                        c = ti.cast(1.0 - prob[cell + j], ti.f32)
+                    out[row + j] = ti.select(unknown[cell + j] == 0, c, ti.f32(-2.0))
                 if ti.static(not weighted):
                     for j in range(w):
-                        squared_flat[cell + j] = far
+                        squared[cell + j] = far
                 for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
                     di = rows_[k] - i
                     dy2 = di * di
@@ -194,20 +196,19 @@ def _build_conflict(ti):
                     for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
                         dx = ti.max(ti.max(a - j, j - b), 0)
                         q = dy2 + dx * dx
-                        known = unknown_flat[cell + j] == 0
+                        known = unknown[cell + j] == 0
                         if ti.static(weighted):          # grey walls: the brightest wins
                             e = weights[k] * profile[q]
                             if known:
-                                out_flat[row + j] = ti.min(out_flat[row + j],
-                                                           ti.cast(1.0 - ti.max(prob_flat[cell + j], e), ti.f32))
+                                out[row + j] = ti.min(out[row + j], ti.cast(1.0 - ti.max(prob[cell + j], e), ti.f32))
                             else:
-                                out_flat[row + j] = ti.max(out_flat[row + j], ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
-                        elif q < ti.cast(squared_flat[cell + j], ti.i32):     # walls at 1: the nearest wins
-                            squared_flat[cell + j] = ti.cast(q, dt)
-                            c = known_cost[q]
+                                out[row + j] = ti.max(out[row + j], ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
+                        elif q < ti.cast(squared[cell + j], ti.i32):     # walls at 1: the nearest wins
+                            squared[cell + j] = ti.cast(q, dt)
+                            c = costs[0, q]
                             if ti.static(grey):
-                                c = ti.cast(1.0 - ti.max(prob_flat[cell + j], profile[q]), ti.f32)
-                            out_flat[row + j] = ti.select(known, c, unknown_cost[q])
+                                c = ti.cast(1.0 - ti.max(prob[cell + j], profile[q]), ti.f32)
+                            out[row + j] = ti.select(known, c, costs[1, q])
 
     return conflict
 
