@@ -73,8 +73,9 @@ def _newton_levels(prep_a, prep_b, opts, r0, weight, counter):
     for level in range(top, -1, -1):                  # coarse to fine; level 0: the given maps
         cost = _level_cost(prep_a, prep_b, level, opts, r0, weight, counter)
         eps = cost.steps[0]
-        # the overlap is needed at the start (is there any?) and at the end (the result's)
-        count = "first" if level == 0 and cost.counts_free else "none"
+        # the overlap is needed at the start (is there any?) and at the end (the result's, or
+        # whether there is any: ``count_overlap``), from the launches where it comes free
+        count = "none" if level > 0 else "first" if cost.counts_free else "none" if opts.count_overlap else "any"
         evaluate = functools.partial(cost.value_gradient_hessian, count=count)
         # at the top: is there any overlap? (the exact count only when the top level is also the last)
         first_count = ("any" if top > 0 else "first") if level == top else count
@@ -126,15 +127,16 @@ def _bfgs_levels(prep_a, prep_b, opts, r0, weight, counter):
                                   max_step=cost.max_step)
         r = cost.to_r(z)
     # eq. (11)-(12) on the given maps, one launch (two when counting the overlap takes its own)
-    count = "first" if opts.count_overlap or cost.counts_free else "none"
+    count = "first" if opts.count_overlap or cost.counts_free else "any"
     _, _, _, (e, overlap, information) = cost.value_gradient_hessian(cost.to_z(r), count=count)
     return _ended(cost, opts, r, status, nit, cost_value, e, overlap, information)
 
 
 def _ended(cost, opts, r, status, nit, cost_value, e, overlap, information):
-    """The Descent at ``r``, the overlap counted there unless it came with the last launch or is
-    not asked for (``count_overlap``: then only whether there is any, ``LevelCost.overlaps``)."""
-    if overlap is None and opts.count_overlap:
-        overlap = cost.overlap(r)
-    overlapping = overlap > 0 if overlap is not None else cost.overlaps(r)
-    return Descent(r, status, nit, cost_value, e, overlap, information, overlapping)
+    """The Descent at ``r``. ``overlap``: what the last launch at ``r`` counted, or None. Without
+    ``count_overlap``, where counting takes a launch of its own (the envelope discrepancy), that
+    is only the proof that the maps overlap or not (count "any"), and no overlap is reported."""
+    if overlap is None:
+        overlap = cost.overlap(r) if opts.count_overlap else int(cost.overlaps(r))
+    proof = not opts.count_overlap and not cost.counts_free
+    return Descent(r, status, nit, cost_value, e, None if proof else overlap, information, overlap > 0)
