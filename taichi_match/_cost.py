@@ -298,15 +298,6 @@ class LevelCost:
         self._count(1)
         return int(self._engine.overlap(np.asarray(r, dtype=np.float64)[None, :])[0])
 
-    def overlaps(self, r) -> bool:
-        """Whether the maps overlap at r: one launch of the evaluation, which proves it when
-        enough of B's walls land on known cells of A (``_engines``, count "any"), and the overlap
-        counted only when they do not."""
-        spared = getattr(self._engine, "dense_launches", 0)
-        counts = self.evaluate(np.asarray(r, dtype=np.float64)[None, :], count="any")[1]
-        self._counter.launches += getattr(self._engine, "dense_launches", 0) - spared
-        return bool(counts[0] > 0)
-
     def evaluate(self, poses, count="first"):
         """e and the overlap (see ``make_engine`` for ``count``) for a batch of poses: one launch."""
         self._count(len(poses), count)

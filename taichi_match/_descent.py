@@ -73,9 +73,13 @@ def _newton_levels(prep_a, prep_b, opts, r0, weight, counter):
     for level in range(top, -1, -1):                  # coarse to fine; level 0: the given maps
         cost = _level_cost(prep_a, prep_b, level, opts, r0, weight, counter)
         eps = cost.steps[0]
-        # the overlap is needed at the start (is there any?) and at the end (the result's, or
-        # whether there is any: ``count_overlap``), from the launches where it comes free
-        count = "none" if level > 0 else "first" if cost.counts_free else "none" if opts.count_overlap else "any"
+        # the overlap is needed at the start (is there any?) and at the end: the result's, or
+        # without ``count_overlap`` whether there is any, from the launches where that comes free
+        count = "none"
+        if level == 0 and cost.counts_free:
+            count = "first"
+        elif level == 0 and not opts.count_overlap:
+            count = "any"
         evaluate = functools.partial(cost.value_gradient_hessian, count=count)
         # at the top: is there any overlap? (the exact count only when the top level is also the last)
         first_count = ("any" if top > 0 else "first") if level == top else count
@@ -137,6 +141,6 @@ def _ended(cost, opts, r, status, nit, cost_value, e, overlap, information):
     ``count_overlap``, where counting takes a launch of its own (the envelope discrepancy), that
     is only the proof that the maps overlap or not (count "any"), and no overlap is reported."""
     if overlap is None:
-        overlap = cost.overlap(r) if opts.count_overlap else int(cost.overlaps(r))
+        overlap = cost.overlap(r)
     proof = not opts.count_overlap and not cost.counts_free
     return Descent(r, status, nit, cost_value, e, None if proof else overlap, information, overlap > 0)
