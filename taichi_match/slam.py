@@ -246,7 +246,11 @@ class SlamOptions:
         five more each way, alternating in one process (odometry seeds 4-8), derailed a simulated
         run (0.556 m), raised aces' median (0.096 -> 0.117) and edmonton's (0.175 -> 0.253) and
         lowered orebro's (0.148 -> 0.107); the front-end match median 0.86-0.96 times as long, the
-        whole loop 0.94-0.99.
+        whole loop 0.94-0.99. With submap frames, ``gate_inflation`` 2 and the trimmed front end
+        (2026-12-06, twenty runs per log, bench/SLAM_crop_target_trimmed.md against bench/SLAM.md):
+        140 runs of 180 within the ATE target against 149 (edmonton 2 against 7, median 0.142 m
+        against 0.111; orebro 2 against 5); in that run the front-end match median 3.8-5.0 ms on
+        seven logs but edmonton's 7.0 (its scans cover most of their submap), fhw 27 ms a scan.
     max_ray_length : beams are cut there (metres) in submaps and scans. With 30 (2026-12-04, five
         runs per log against bench/SLAM.md's): the median ATE fell on belgioioso (0.107 -> 0.085 m),
         csail (0.106 -> 0.077) and orebro (0.120 -> 0.097, but its worst run 0.172 -> 0.313) and rose
