@@ -51,7 +51,7 @@ measured 3.5x faster than (M, 4) rows, whose loads do not vectorise).
 import numpy as np
 
 from ._cost import AffineMap, pose_feature_pair
-from ._distance import _taichi_type, near_weighted_envelope, wall_runs
+from ._distance import _taichi_type, wall_runs
 from ._grid import GridMap, cells
 from ._kernels import PAD
 from ._launch import Launcher, launch, row_spread

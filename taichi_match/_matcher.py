@@ -171,7 +171,8 @@ class Matcher:
         return MatchResult(
             pose=pose, covariance=covariance, information=end.information, degenerate=degenerate,
             cost=float(end.cost), discrepancy=float(end.discrepancy),
-            overlap=None if end.overlap is None else int(end.overlap), prior_weight=weight, initial_pose=r0, iterations=end.iterations, evaluations=counter.poses, launches=counter.launches,
+            overlap=None if end.overlap is None else int(end.overlap), prior_weight=weight, initial_pose=r0,
+            iterations=end.iterations, evaluations=counter.poses, launches=counter.launches,
             converged=status.converged, status=status, message=MESSAGES[status],
             seconds=time.perf_counter() - start, accepted=accepted, evidence=proof, covariance_floor=floor,
             residual=residual, options=opts, hypotheses=hypotheses, search_complete=complete,

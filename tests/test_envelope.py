@@ -654,7 +654,8 @@ def test_the_stamped_conflict_grid_equals_numpy_from_scipy_distances(grey, trina
         ii, jj = np.indices(shape)
         for r, c in zip(rows, cols):
             q = (ii - r) ** 2 + (jj - c) ** 2
-            envelope = np.maximum(envelope, np.where(q <= reach * reach, prob[r, c] * profile[np.minimum(q, reach * reach)], 0.0))
+            near = prob[r, c] * profile[np.minimum(q, reach * reach)]
+            envelope = np.maximum(envelope, np.where(q <= reach * reach, near, 0.0))
         hi = envelope
     else:
         exact = np.rint(distance_transform_edt(~walls) ** 2).astype(np.int64)
