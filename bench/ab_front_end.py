@@ -13,7 +13,8 @@ pose and calibrated covariance is bit-identical.
 With ``--loop``, the whole mapping loop instead (``slam`` on each named log, default options,
 the old and the new package in turn, ``--rounds`` times): per log the front-end match's median
 (``SlamResult.match_seconds``) and its parts' medians (target preparation, scan preparation,
-match) both ways, the median ms a scan, and whether the trajectories are bit-identical.
+match) both ways, the median ms a scan and of it the loop closing's, and whether the trajectories
+are bit-identical.
 
     python bench/ab_front_end.py 9fb02c9 --loop edmonton seattle --rounds 2
 """
@@ -132,9 +133,10 @@ def loops(revision, names, rounds):
                 whole = np.median(np.concatenate([r.match_seconds for r, _ in runs[key]]))
                 parts = np.median(np.vstack([r.match_parts for r, _ in runs[key]]), axis=0)
                 per_scan = np.median([t for _, t in runs[key]])
+                closing = np.median([r.seconds["loop closing"] / len(r.poses) for r, _ in runs[key]])
                 print(f"{name:13s} {key} ({revision if key == 'old' else 'this tree'}): front-end match median "
                       f"{1e3 * whole:.2f} ms (target {1e3 * parts[0]:.2f}, scan {1e3 * parts[1]:.2f}, match "
-                      f"{1e3 * parts[2]:.2f}), {1e3 * per_scan:.1f} ms a scan")
+                      f"{1e3 * parts[2]:.2f}), {1e3 * per_scan:.1f} ms a scan (loop closing {1e3 * closing:.1f})")
             print(f"{name:13s} trajectories bit-identical: {same}", flush=True)
     del base
 

@@ -1078,13 +1078,18 @@ class Slam:
         z = loop["pose"]
         t_z, r_z = _sd(loop["covariance"])
         agree = disagree = 0
-        for other in edges:
+        if not edges:
+            return agree, disagree
+        # the travel to every closure's frames at once (a lookup per closure was most of fhw's
+        # loop closing in Python: 430 closures in its graph); the same floats as one by one
+        frames = np.array([other["frames"] for other in edges], dtype=np.int64)
+        along = np.abs(travelled[frames.ravel()].reshape(-1, 2) - np.array([travelled[a], travelled[b]]))
+        from_a = inverse(est[a])
+        for i in np.flatnonzero(along.max(axis=1) <= NEIGHBOUR_PATH):
+            other = edges[i]
             a2, b2 = other["frames"]
-            along_a, along_b = abs(travelled[a2] - travelled[a]), abs(travelled[b2] - travelled[b])
-            if max(along_a, along_b) > NEIGHBOUR_PATH:
-                continue
-            path = along_a + along_b
-            predicted = compose(compose(compose(inverse(est[a]), est[a2]), other["pose"]),
+            path = float(along[i, 0] + along[i, 1])
+            predicted = compose(compose(compose(from_a, est[a2]), other["pose"]),
                                 compose(inverse(est[b2]), est[b]))
             error = compose(inverse(z), predicted)
             t_o, r_o = _sd(other["covariance"])
