@@ -628,16 +628,18 @@ def test_the_stamped_conflict_grid_equals_the_exact_transforms_on_thin_maps(shap
     assert len(envelope_profile(reach, 0.5)) == reach * reach + 2
 
 
+@pytest.mark.parametrize("reach, ratio", [(13, 0.5), (20, 0.3)])
 @pytest.mark.parametrize("grey, trinary", [(False, True), (False, False), (True, False)])
-def test_the_stamped_conflict_grid_equals_numpy_from_scipy_distances(grey, trinary, rng):
+def test_the_stamped_conflict_grid_equals_numpy_from_scipy_distances(grey, trinary, reach, ratio, rng):
     # one launch stamps the walls' squared distances (or grey envelope) and the conflict values:
     # against SciPy's exact distance transform and conflict_grid's NumPy arithmetic, bit for bit
-    # (walls at 1 on a trinary or a probability map; grey walls on a probability map)
+    # (walls at 1 on a trinary or a probability map; grey walls on a probability map); reach 20
+    # keeps the squared distances in uint16
     from scipy.ndimage import distance_transform_edt
 
     from taichi_match._envelope import conflict_grid, envelope_profile, near_conflict_grid
 
-    shape, reach, ratio = (90, 130), 13, 0.5
+    shape = (90, 130)
     walls = rng.random(shape) < 0.02
     prob = np.where(walls, rng.uniform(0.5, 1.0, shape) if grey else 1.0,
                     0.0 if trinary else rng.uniform(0.0, 0.45, shape))
@@ -659,11 +661,25 @@ def test_the_stamped_conflict_grid_equals_numpy_from_scipy_distances(grey, trina
         hi = envelope
     else:
         exact = np.rint(distance_transform_edt(~walls) ** 2).astype(np.int64)
-        want = np.where(exact <= reach * reach, exact, 255)
+        assert squared.dtype == (np.uint8 if reach * reach < 255 else np.uint16)
+        want = np.where(exact <= reach * reach, exact, np.iinfo(squared.dtype).max)
         np.testing.assert_array_equal(squared, want)
         hi = profile[np.minimum(exact, reach * reach + 1)]
     hi = np.where(unknown, hi, np.fmax(np.nan_to_num(prob), hi))
     assert got.tobytes() == conflict_grid(hi, unknown).tobytes()
+
+
+def test_the_stamped_conflict_grid_without_walls_is_the_maps_own():
+    # no wall: 1 - p on known cells, -2 on unknown ones, -4 on the ring; squared distances all far
+    from taichi_match._envelope import conflict_grid, near_conflict_grid
+
+    prob = np.array([[0.0, np.nan, 0.2], [np.nan, 0.4, 0.0]])
+    unknown = np.isnan(prob)
+    none = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0))
+    got, squared = near_conflict_grid(None, unknown, 13, 0.5, none, squared=True)
+    assert got.tobytes() == conflict_grid(np.zeros(prob.shape), unknown).tobytes() and np.all(squared == 255)
+    got, squared = near_conflict_grid(prob, unknown, 13, 0.5, none)
+    assert got.tobytes() == conflict_grid(np.nan_to_num(prob), unknown).tobytes() and squared is None
 
 
 def test_known_cells_moments_equal_the_listed_cells(rng):
