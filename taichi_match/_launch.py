@@ -134,25 +134,24 @@ class Launcher:
 
 
 class _BoundLaunch:
-    """``kernel(*arrays, mode)`` launched again and again on the same arrays: the first call goes
-    through ``launch``; from the second on, a launch context with the arrays' addresses, made
-    once, is relaunched (Taichi 1.7's CPU launcher reads the addresses afresh from the context at
-    every launch and changes nothing else in it). A one-off launch costs what ``launch`` does."""
+    """``kernel(*arrays, mode)`` launched again and again on the same arrays: once the kernel is
+    compiled for them (by this launch's first call through ``launch``, or by any launch before it),
+    a launch context with the arrays' addresses, made once, is relaunched (Taichi 1.7's CPU
+    launcher reads the addresses afresh from the context at every launch and changes nothing else
+    in it). A one-off launch costs what ``launch`` does."""
 
     def __init__(self, kernel, arrays, mode):
         if not all(array.flags.c_contiguous for array in arrays):
             raise ValueError("a bound launch needs C-contiguous arrays")
         self._kernel, self._arrays, self._mode = kernel, arrays, mode
         self._prog = self._compiled = self._ctx = None
-        self._calls = 0
 
     def __call__(self):
         prog = runtime_program()
         if self._ctx is not None and self._prog is prog and direct_launch_enabled():
             prog.launch_kernel(self._compiled, self._ctx)
             return
-        self._calls += 1
-        fast = _FAST.get(_fast_key(self._kernel, self._arrays, self._mode)) if self._calls > 1 else None
+        fast = _FAST.get(_fast_key(self._kernel, self._arrays, self._mode))
         if fast and fast[0] is prog and direct_launch_enabled():
             try:
                 ctx = _context(fast[1], self._arrays)
