@@ -59,7 +59,8 @@ class PreparedMap:
         self.blur_growth = float(blur_growth)
         self._squared = self._wall_distances = self._blurred = None
         if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
-            self._prepare_envelope()
+            unknown = self._prepare_envelope()
+            self.n_known = unknown.size - int(np.count_nonzero(unknown))
         else:
             grid = self.grid
             # the walls' distance transform, once for the blur and the verdict
@@ -67,7 +68,7 @@ class PreparedMap:
             self._wall_distances = transform[0] if transform is not None else None
             blurred = blur(grid, blur_width, kind=blur_kind, transform=transform)
             self._blurred = blurred if blurred is not grid else grid._with_trusted(grid.prob)
-        self.n_known = int(np.count_nonzero(self.known))
+            self.n_known = int(np.count_nonzero(self.known))
         # padded, values, rows, radius, centroid and spread are made when first asked for: the
         # envelope's coarser levels seldom need the first three and never the last three
         self._coarser = None
@@ -96,13 +97,14 @@ class PreparedMap:
         """The known cells' mask (for "trinary" made anew at each call: not kept)."""
         return self._code != UNKNOWN if self._code is not None else self.frame.known
 
-    def _prepare_envelope(self):
-        """The conflict grid and the walls; for the verdict the walls' distances. With few walls
-        (laser-built maps: 0.1-2 % of the cells) each wall stamps the disc of the envelope's
-        reach around it, with the conflict values, in one launch (``near_conflict_grid``): at 1
-        (trinary maps) its squared distance, kept for the verdict, from which the conflict grid is
-        the same bit for bit as from the exact transform; grey (coarse levels) its weighted
-        envelope. Otherwise the exact transforms over every cell (``_blur``)."""
+    def _prepare_envelope(self) -> np.ndarray:
+        """The conflict grid and the walls; for the verdict the walls' distances; returns the
+        unknown cells' mask. With few walls (laser-built maps: 0.1-2 % of the cells) each wall
+        stamps the disc of the envelope's reach around it, with the conflict values, in one launch
+        (``near_conflict_grid``): at 1 (trinary maps) its squared distance, kept for the verdict,
+        from which the conflict grid is the same bit for bit as from the exact transform; grey
+        (coarse levels) its weighted envelope. Otherwise the exact transforms over every cell
+        (``_blur``)."""
         frame, code = self.frame, self._code
         if code is None:
             self.walls = rows, cols, weights = wall_points(frame)
@@ -123,6 +125,7 @@ class PreparedMap:
                                                               reach, ratio, self.walls, squared=ones)
         else:
             self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), unknown)
+        return unknown
 
     def _envelope(self, ones, keep_distances=False):
         """The envelope hi on every cell, for maps not stamped with squared distances: NaN (counts
