@@ -232,7 +232,7 @@ def wall_runs(rows, cols, weights, shape, reach, merge_weights: bool = True):
     return rows, starts, ends, weights, first, half
 
 
-def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
+def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype):
     """The stamp kernel's output of ``shape`` for walls at (``rows``, ``cols``) (in any order);
     unweighted, ``far(out)`` beyond the reach."""
     shape = tuple(int(n) for n in shape)
@@ -241,7 +241,7 @@ def _stamp(kernel, rows, cols, weights, profile, shape, reach, dtype, out=None):
     if len(runs[0]) == 0 or 0 in shape:
         return np.full(shape, beyond, dtype=dtype)
     rows, starts, ends, weights, first, half = runs
-    out = np.empty(shape, dtype=dtype) if out is None else out
+    out = np.empty(shape, dtype=dtype)
     # the value beyond reach first, by NumPy: a Taichi loop over the cells runs scalar, about 1 ns
     # a cell here, NumPy's fill a hundredth of that (measured on the mapping loop's front-end
     # targets, seattle, 240 of them: the squared distances' launch 0.75 -> 0.57 ms)
@@ -266,15 +266,12 @@ def near_squared_distance(rows, cols, shape, reach: int) -> np.ndarray:
     return _stamp(1, rows, cols, None, np.zeros(1), shape, reach, dtype)
 
 
-def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.ndarray, *,
-                           scratch: bool = False) -> np.ndarray:
+def near_weighted_envelope(rows, cols, weights, shape, reach: int, profile: np.ndarray) -> np.ndarray:
     """max over the walls at (``rows``, ``cols``) within ``reach`` cells of ``weights[k] *
     profile[squared distance]`` per cell of a grid of ``shape`` (0 where none is within reach):
     the upper envelope of grey walls, each wall stamping its disc (float64; ``profile`` has
-    reach**2 + 1 entries). ``scratch``: in a buffer kept for the next call (valid until then)."""
-    shape = tuple(int(n) for n in shape)
-    out = _SCRATCH.get("envelope", shape, np.float64) if scratch else None
-    return _stamp(2, rows, cols, np.asarray(weights, dtype=np.float64), profile, shape, reach, np.float64, out)
+    reach**2 + 1 entries)."""
+    return _stamp(2, rows, cols, np.asarray(weights, dtype=np.float64), profile, shape, reach, np.float64)
 
 
 def wall_distance(walls: np.ndarray) -> np.ndarray:

@@ -114,14 +114,15 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     that grid. ``prob`` None (only with ``squared``): every known cell is 0 or 1 (a trinary map)
     and hi is the envelope alone (1 on the walls).
 
-    In one Taichi launch after a NumPy pass: NumPy writes every cell's value where no wall reaches
-    (1 - p, or -2 unknown, -4 off the map), then each row's work item stamps the runs of walls
-    near it (``_distance.wall_runs``) and writes a cell's conflict value where a wall comes nearer,
-    the least (known cells) or largest (unknown ones) winning: 1 - hi and -1 - (1 - hi) are
-    monotone in the distance, so the result is that of the nearest (or brightest) wall whatever
-    the order. Measured on the mapping loop's front-end targets and scans (2026-12-06, edmonton):
-    NumPy's pass 0.22 ms where Taichi's loop over the cells took 0.42, and the stamped distances
-    and conflict values in one pass over the walls instead of a stamp then a pass over the cells.
+    In one Taichi launch: each row's work item writes the row's values where no wall reaches
+    (1 - p, or -2 unknown, -4 off the map), then stamps the runs of walls near it
+    (``_distance.wall_runs``) and writes a cell's conflict value where a wall comes nearer, the
+    least (known cells) or largest (unknown ones) winning: 1 - hi and -1 - (1 - hi) are monotone
+    in the distance, so the result is that of the nearest (or brightest) wall whatever the order.
+    Before (2026-12-06), a stamp into a grid of squared distances or of the envelope, then a pass
+    over every cell: the mapping loop's front end, whose targets and scans this prepares, 0.78-0.94
+    of its time with the loop's other trims (bench/AB_FRONT_END.md); NumPy writing the values
+    where no wall reaches before the launch was slower in the loop (one thread).
     """
     if prob is None and not squared:
         raise ValueError("grey walls need the map's probabilities")

@@ -15,19 +15,18 @@ import numpy as np
 
 from ._taichi import kernel_lock, runtime_program, taichi
 
-__all__ = ["launch", "Launcher", "direct_launch_enabled", "use_direct_launch", "row_strips", "row_spread"]
+__all__ = ["launch", "Launcher", "direct_launch_enabled", "use_direct_launch", "row_spread"]
 
 _WRITTEN_FOR = (1, 7)            # the Taichi (major, minor) whose internals this path uses
 
 # Taichi's CPU backend runs a parallel loop of n items in tasks of max(512, n / (32 x threads)) items
 # (``block_dim`` when adaptive, its default): a loop over the rows of a map of fewer than 1024 rows
 # is one task, on one thread. A kernel working a row at a time loops over at least this many
-# items instead (``row_strips``, ``row_spread``): measured on the preparation of edmonton's
+# items instead (``row_spread``; strips of rows before 2026-12-06): measured on the preparation of edmonton's
 # laser submaps (832 x 1036 cells and its two coarser levels), 2 threads, the median over its
 # 16 submaps 11.3-12.3 -> 10.5-10.8 ms (the level's conflict grid 1.6 -> 1.0 ms in strips, the
 # coarser levels' stamps 1.56 -> 1.16 and 0.76 -> 0.65 ms spread)
 ROW_ITEMS = 4096
-STRIP_COLUMNS = 32               # the narrowest strip
 
 _FAST = {}       # (kernel, count mode, dtypes) -> (program, compiled kernel, compiled data), or None: no fast path
 _DIRECT = {"enabled": None}      # None: not probed yet
@@ -49,15 +48,6 @@ def use_direct_launch(enabled: bool) -> None:
     than 1.7 it cannot be turned on)."""
     _DIRECT["enabled"] = None
     _DIRECT["enabled"] = bool(enabled) and direct_launch_enabled()
-
-
-def row_strips(rows: int, cols: int) -> np.ndarray:
-    """(S + 1,) int32 column bounds splitting ``cols`` columns into S strips of about equal width,
-    S such that ``rows`` x S reaches ``ROW_ITEMS`` with strips at least ``STRIP_COLUMNS`` wide (at
-    least one): a kernel looping over (row, strip) spreads over Taichi's threads where one looping
-    over rows would not. Whatever S, each cell is one item's."""
-    strips = max(1, min(-(-ROW_ITEMS // max(rows, 1)), cols // STRIP_COLUMNS))
-    return (np.arange(strips + 1, dtype=np.int64) * cols // strips).astype(np.int32)
 
 
 def row_spread(rows: int) -> np.ndarray:
