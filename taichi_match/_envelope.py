@@ -114,24 +114,31 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     that grid. ``prob`` None (only with ``squared``): every known cell is 0 or 1 (a trinary map)
     and hi is the envelope alone (1 on the walls).
 
-    In one Taichi launch: each row's work item writes the row's values where no wall reaches
-    (1 - p, or -2 unknown, -4 off the map), then stamps the runs of walls near it
-    (``_distance.wall_runs``) and writes a cell's conflict value where a wall comes nearer, the
-    least (known cells) or largest (unknown ones) winning: 1 - hi and -1 - (1 - hi) are monotone
-    in the distance, so the result is that of the nearest (or brightest) wall whatever the order.
-    Before (2026-12-06), a stamp into a grid of squared distances or of the envelope, then a pass
-    over every cell: the mapping loop's front end, whose targets and scans this prepares, 0.78-0.94
-    of its time with the loop's other trims (bench/AB_FRONT_END.md); NumPy writing the values
-    where no wall reaches before the launch was slower in the loop (one thread).
+    NumPy fills the grid with the value of an unknown cell that no wall reaches (-2; -4 on the ring
+    off the map) and the squared distances with their value beyond reach; then one Taichi launch
+    works a row per work item over the runs of walls near it (``_distance.wall_runs``). Walls at 1:
+    each run lowers the squared distances of the cells it reaches (the least wins, no branch), then
+    the row's values are written from them over its known span (first known cell to last) and every
+    cell a run reached. Grey walls: the span's values are written first, then each run writes a
+    cell's value where it comes brighter, the least (known cells) or largest (unknown ones)
+    winning: 1 - hi and -1 - (1 - hi) are monotone in the envelope, so the result does not depend
+    on the order. Laser submaps know 4-16 % of their cells (median, edmonton and seattle), and the
+    spans hold a third of the cells or less: against the kernel that wrote every cell and each
+    stamp's value as it went (b2d6744), front-end targets prepared in 0.90-0.94 of the time, scans
+    in 0.95 (in-process A/B on captured front-end pairs of edmonton, seattle and aces, the same
+    bits). NumPy writing every cell's value before the launch (its own arithmetic, not a fill) was
+    slower in the loop than the kernel writing them.
     """
     if prob is None and not squared:
         raise ValueError("grey walls need the map's probabilities")
     h, w = unknown.shape
-    out = np.empty((h + 2 * PAD, w + 2 * PAD), dtype=np.float32)
-    out[:PAD], out[h + PAD:] = _OFF_MAP, _OFF_MAP                 # the ring's rows; its columns in the kernel
+    out = np.full((h + 2 * PAD, w + 2 * PAD), np.float32(-2.0))  # unknown where no wall reaches
+    out[:PAD], out[h + PAD:] = _OFF_MAP, _OFF_MAP                 # the ring off the map
+    out[PAD:h + PAD, :PAD], out[PAD:h + PAD, w + PAD:] = _OFF_MAP, _OFF_MAP
     profile = envelope_profile(reach, ratio)
     dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
     distances = np.empty((h, w) if squared else (1, 1), dtype=dtype)
+    distances.fill(np.iinfo(dtype).max)
     rows, cols, weights = walls
     monotone = squared or bool(np.all(np.diff(profile) <= 0))
     rows, starts, ends, weights, first, half = wall_runs(rows, cols, None if squared else weights, (h, w), reach,
@@ -140,12 +147,12 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     costs[0] = 1.0 - profile                                      # 1 - hi in float64, rounded once
     np.subtract(np.float32(-1.0), costs[0], out=costs[1])
     p = np.zeros(1) if prob is None else np.ascontiguousarray(prob, dtype=np.float64).reshape(-1)
+    unknown = np.ascontiguousarray(unknown).view(np.uint8).reshape(-1)
     if h and w:
         with kernel_lock():
             launch(kernels(_build_conflict),
                    (rows, starts, ends, weights, profile, costs, first, half, row_spread(h),
-                    np.array([np.iinfo(dtype).max], dtype=np.int64),
-                    np.ascontiguousarray(unknown).view(np.uint8).reshape(-1), p, distances.reshape(-1),
+                    unknown, p, distances.reshape(-1),
                     out.reshape(-1)),
                    (prob is not None, not squared, _taichi_type(dtype)))
     return out, distances if squared else None
@@ -157,15 +164,15 @@ def _build_conflict(ti):
                  ends: ti.types.ndarray(dtype=ti.i32, ndim=1), weights: ti.types.ndarray(dtype=ti.f64, ndim=1),
                  profile: ti.types.ndarray(dtype=ti.f64, ndim=1), costs: ti.types.ndarray(dtype=ti.f32, ndim=2),
                  first: ti.types.ndarray(dtype=ti.i32, ndim=1), half: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 spread: ti.types.ndarray(dtype=ti.i32, ndim=1), beyond: ti.types.ndarray(dtype=ti.i64, ndim=1),
+                 spread: ti.types.ndarray(dtype=ti.i32, ndim=1),
                  unknown: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: ti.types.ndarray(dtype=ti.f64, ndim=1),
                  squared: ti.types.ndarray(ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=1),
                  grey: ti.template(), weighted: ti.template(), dt: ti.template()):
         # a row of the map per work item (the rows spread out: ``_launch.row_spread``), which
-        # first writes the row's values where no wall reaches, then stamps the runs of walls within
-        # reach rows of it (sorted by row, ``first[r]`` the first on row r or later), each reaching
-        # ``half[d + reach]`` cells beyond either end on row d away; the row belongs to its work
-        # item, so no atomics, and the extrema do not depend on the order. The grids come flat (a
+        # stamps the runs of walls within reach rows of it (sorted by row, ``first[r]`` the first
+        # on row r or later), each reaching ``half[d + reach]`` cells beyond either end on row d
+        # away; the row belongs to its work item, so no atomics, and the extrema do not depend on
+        # the order. The grids come flat (a
         # loop over 1-D indices ran several times faster than one over 2-D ones here, and each
         # array argument costs a launch a few microseconds): the map's h x w cells (h + 1 entries
         # in ``first``), the conflict grid's (h + 2 PAD) x (w + 2 PAD)
@@ -173,43 +180,51 @@ def _build_conflict(ti):
         w = unknown.shape[0] // h
         width = w + 2 * PAD
         reach = (half.shape[0] - 1) // 2
-        far = ti.cast(beyond[0], dt)                     # the squared distance's value beyond reach
         for i, part in ti.ndrange(h, spread.shape[0]):
             if part == 0:
-                row = (i + PAD) * width
-                for j in range(PAD):
-                    out[row + j] = ti.f32(_OFF_MAP)
-                    out[row + PAD + w + j] = ti.f32(_OFF_MAP)
-                cell, row = i * w, row + PAD
-                for j in range(w):
-                    c = ti.f32(1.0)
-                    if ti.static(grey):
-                        c = ti.cast(1.0 - prob[cell + j], ti.f32)
-                    out[row + j] = ti.select(unknown[cell + j] == 0, c, ti.f32(-2.0))
-                if ti.static(not weighted):
-                    for j in range(w):
-                        squared[cell + j] = far
-                for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
-                    di = rows_[k] - i
-                    dy2 = di * di
-                    chord = half[di + reach]
-                    a, b = starts[k], ends[k]
-                    for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
-                        dx = ti.max(ti.max(a - j, j - b), 0)
-                        q = dy2 + dx * dx
-                        known = unknown[cell + j] == 0
-                        if ti.static(weighted):          # grey walls: the brightest wins
-                            e = weights[k] * profile[q]
-                            if known:
+                cell, row = i * w, (i + PAD) * width + PAD
+                lo, hi = 0, w                            # the row's known cells lie in [lo, hi)
+                while lo < w and unknown[cell + lo] != 0:
+                    lo += 1
+                while hi > lo and unknown[cell + hi - 1] != 0:
+                    hi -= 1
+                if ti.static(weighted):                  # grey walls: the brightest wins
+                    for j in range(lo, hi):
+                        out[row + j] = ti.select(unknown[cell + j] == 0, ti.cast(1.0 - prob[cell + j], ti.f32),
+                                                 ti.f32(-2.0))
+                    for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
+                        di = rows_[k] - i
+                        chord = half[di + reach]
+                        a, b = starts[k], ends[k]
+                        for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
+                            dx = ti.max(ti.max(a - j, j - b), 0)
+                            e = weights[k] * profile[di * di + dx * dx]
+                            if unknown[cell + j] == 0:
                                 out[row + j] = ti.min(out[row + j], ti.cast(1.0 - ti.max(prob[cell + j], e), ti.f32))
                             else:
                                 out[row + j] = ti.max(out[row + j], ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
-                        elif q < ti.cast(squared[cell + j], ti.i32):     # walls at 1: the nearest wins
-                            squared[cell + j] = ti.cast(q, dt)
-                            c = costs[0, q]
-                            if ti.static(grey):
-                                c = ti.cast(1.0 - ti.max(prob[cell + j], profile[q]), ti.f32)
-                            out[row + j] = ti.select(known, c, costs[1, q])
+                else:                                    # walls at 1: the nearest wins
+                    # the squared distances first (the least per cell, no branch), then the values
+                    # over the row's known span and every stamped cell, each from its distance
+                    if lo == hi:
+                        lo, hi = w, 0
+                    for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
+                        di = rows_[k] - i
+                        dy2 = di * di
+                        chord = half[di + reach]
+                        a, b = starts[k], ends[k]
+                        j0, j1 = ti.max(a - chord, 0), ti.min(b + chord + 1, w)
+                        lo, hi = ti.min(lo, j0), ti.max(hi, j1)
+                        for j in range(j0, j1):
+                            dx = ti.max(ti.max(a - j, j - b), 0)
+                            squared[cell + j] = ti.cast(ti.min(ti.cast(squared[cell + j], ti.i32), dy2 + dx * dx), dt)
+                    last = profile.shape[0] - 1                  # beyond reach: the profile's 0
+                    for j in range(lo, hi):
+                        q = ti.min(ti.cast(squared[cell + j], ti.i32), last)
+                        c = costs[0, q]
+                        if ti.static(grey):
+                            c = ti.cast(1.0 - ti.max(prob[cell + j], profile[q]), ti.f32)
+                        out[row + j] = ti.select(unknown[cell + j] == 0, c, costs[1, q])
 
     return conflict
 

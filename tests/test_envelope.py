@@ -635,16 +635,44 @@ def test_the_stamped_conflict_grid_equals_numpy_from_scipy_distances(grey, trina
     # against SciPy's exact distance transform and conflict_grid's NumPy arithmetic, bit for bit
     # (walls at 1 on a trinary or a probability map; grey walls on a probability map); reach 20
     # keeps the squared distances in uint16
-    from scipy.ndimage import distance_transform_edt
-
-    from taichi_match._envelope import conflict_grid, envelope_profile, near_conflict_grid
-
     shape = (90, 130)
     walls = rng.random(shape) < 0.02
     prob = np.where(walls, rng.uniform(0.5, 1.0, shape) if grey else 1.0,
                     0.0 if trinary else rng.uniform(0.0, 0.45, shape))
     prob[rng.random(shape) < 0.3] = np.nan
-    walls &= ~np.isnan(prob)
+    _check_stamped_conflict_grid(prob, walls & ~np.isnan(prob), grey, trinary, reach, ratio)
+
+
+@pytest.mark.parametrize("grey, trinary", [(False, True), (False, False), (True, False)])
+def test_the_stamped_conflict_grid_on_a_laser_like_canvas(grey, trinary, rng):
+    # a laser's fan in a mostly unknown canvas (front-end submaps know 4-16 % of their cells, and
+    # the kernel writes only each row's span from its first known cell to its last): rows wholly
+    # unknown, rows known only at their first or last cell, unknown holes inside the fan, walls at
+    # its edge whose envelope reaches into the unknown around it
+    shape = (80, 150)
+    ii, jj = np.indices(shape)
+    d = np.hypot(ii - 40.0, jj - 75.0)
+    angle = np.arctan2(ii - 40.0, jj - 75.0)
+    fan = (d < 30) & (np.abs(angle) < 1.2)
+    edge = fan & (d >= 29)
+    walls = edge | (fan & (rng.random(shape) < 0.01))
+    prob = np.where(walls, rng.uniform(0.5, 1.0, shape) if grey else 1.0,
+                    0.0 if trinary else rng.uniform(0.0, 0.45, shape))
+    prob[~fan] = np.nan
+    prob[fan & (rng.random(shape) < 0.1) & ~walls] = np.nan
+    prob[5, 0] = prob[6, -1] = 1.0                     # rows known at one end only, walls there
+    walls[5, 0] = walls[6, -1] = True
+    prob[7, 0] = prob[8, -1] = 0.0
+    assert np.isnan(prob[0]).all() and np.isnan(prob).mean() > 0.8
+    _check_stamped_conflict_grid(prob, walls, grey, trinary, 13, 0.5)
+
+
+def _check_stamped_conflict_grid(prob, walls, grey, trinary, reach, ratio):
+    from scipy.ndimage import distance_transform_edt
+
+    from taichi_match._envelope import conflict_grid, envelope_profile, near_conflict_grid
+
+    shape = prob.shape
     unknown = np.isnan(prob)
     rows, cols = np.nonzero(walls)
     profile = envelope_profile(reach, ratio)
