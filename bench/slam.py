@@ -218,9 +218,12 @@ def table(rows):
             f"| {100 * r['misfit'][0]:.2f} / {100 * r['misfit'][1]:.2f} | {r['ms_per_scan']:.0f} "
             f"| {r['match_ms']:.1f} |")
     stages = list(rows[0]["stages"])
-    lines += ["", "Wall time per scan by stage (ms):", "", "| log | " + " | ".join(stages) + " |",
-              "|---|" + "---|" * len(stages)]
-    lines += [f"| {r['log']} | " + " | ".join(f"{r['stages'][s]:.1f}" for s in stages) + " |" for r in rows]
+    lines += ["", "Wall time per scan by stage (ms), and the machine's speed just before the log's first run (the "
+              "yardstick, `bench/yardstick.py`: it moves by half from hour to hour on this shared machine, and every "
+              "time in these tables with it):", "",
+              "| log | " + " | ".join(stages) + " | yardstick ms |", "|---|" + "---|" * (len(stages) + 1)]
+    lines += [f"| {r['log']} | " + " | ".join(f"{r['stages'][s]:.1f}" for s in stages)
+              + f" | {r.get('yardstick_ms', float('nan')):.1f} |" for r in rows]
     lines += ["", "The front-end match in parts, median ms: preparing its target (the older open submap, cast "
               "anew for each scan), preparing the scan, and matching the two prepared maps:", "",
               "| log | target preparation | scan preparation | match | whole (median of the sums) |",
@@ -281,7 +284,9 @@ def main():
         from taichi_match.simulate import simulate_log
 
         run = simulate_log(0, laps=args.laps)
+        speed = corridor_median_ms()
         rows.append(run_one("simulated", run.log, run.truth, args.plots, options))
+        rows[-1]["yardstick_ms"] = speed
         jitter_runs("simulated", run.log, run.truth)
     if args.logs != []:
         if not LOGS.is_dir():
@@ -289,10 +294,12 @@ def main():
         for name in args.logs or sorted(p.name for p in LOGS.iterdir() if p.is_dir()):
             log = read_carmen(LOGS / name / f"{name}.log.gz")
             _, reference = read_tum(LOGS / name / f"{name}.reference.tum")
+            speed = corridor_median_ms()                # the machine's speed just before this log's timed run
             rows.append(run_one(name, log, reference, args.plots, options))
+            rows[-1]["yardstick_ms"] = speed
             jitter_runs(name, log, reference)
             shown = {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[-1].items()
-                     if k not in ("stages", "match_parts_ms", "add_ms")}
+                     if k not in ("stages", "match_parts_ms", "add_ms", "yardstick_ms")}
             print(name, shown, flush=True)
     yardstick.append(corridor_median_ms())
     text = ["# The mapping loop on real laser logs", "",
