@@ -122,7 +122,7 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     cell a run reached. Grey walls: the span's values are written first, then each run writes a
     cell's value where it comes brighter, the least (known cells) or largest (unknown ones)
     winning: 1 - hi and -1 - (1 - hi) are monotone in the envelope, so the result does not depend
-    on the order. Laser submaps know 4-16 % of their cells (median, edmonton and seattle), and the
+    on the order. Laser submaps know 3-16 % of their cells (median, edmonton and seattle), and the
     spans hold a third of the cells or less: against the kernel that wrote every cell and each
     stamp's value as it went (b2d6744), front-end targets prepared in 0.90-0.94 of the time, scans
     in 0.95 (in-process A/B on captured front-end pairs of edmonton, seattle and aces, the same
@@ -172,10 +172,9 @@ def _build_conflict(ti):
         # stamps the runs of walls within reach rows of it (sorted by row, ``first[r]`` the first
         # on row r or later), each reaching ``half[d + reach]`` cells beyond either end on row d
         # away; the row belongs to its work item, so no atomics, and the extrema do not depend on
-        # the order. The grids come flat (a
-        # loop over 1-D indices ran several times faster than one over 2-D ones here, and each
-        # array argument costs a launch a few microseconds): the map's h x w cells (h + 1 entries
-        # in ``first``), the conflict grid's (h + 2 PAD) x (w + 2 PAD)
+        # the order. The grids come flat (a loop over 1-D indices ran several times faster than
+        # one over 2-D ones here, and each array argument costs a launch a few microseconds): the
+        # map's h x w cells (h + 1 entries in ``first``), the conflict grid's (h + 2 PAD) x (w + 2 PAD)
         h = first.shape[0] - 1
         w = unknown.shape[0] // h
         width = w + 2 * PAD
