@@ -17,6 +17,16 @@ match) both ways, the median ms a scan and of it the loop closing's, and whether
 are bit-identical.
 
     python bench/ab_front_end.py 9fb02c9 --loop edmonton seattle --rounds 2
+
+With ``--captured``, the front end's own pairs instead: the loop runs once on each named log with
+this tree, keeping every ``--every``-th of its front-end matches (the target as cast, the scan, the
+guess); each kept pair is then prepared and matched by the old and the new package in turn, from
+maps of the same form (a map the loop made from its trinary code is given to both so), ``--rounds``
+times. Per log: the medians of the three parts (target preparation, scan preparation, match) both
+ways, the median per-pair ratio of each and of their sum, and whether every pose, calibrated
+covariance and verdict is bit-identical. Steadier than the loop, closer to it than the pairs.
+
+    python bench/ab_front_end.py b2d6744 --captured edmonton seattle aces --rounds 3
 """
 
 import argparse
@@ -75,11 +85,15 @@ def main():
     parser.add_argument("revision", help="the older revision (git)")
     parser.add_argument("--rounds", type=int, default=3, help="times over the pairs (or the logs)")
     parser.add_argument("--loop", nargs="+", metavar="LOG", help="the whole mapping loop on these logs instead")
+    parser.add_argument("--captured", nargs="+", metavar="LOG", help="the loop's own front-end pairs on these logs")
+    parser.add_argument("--every", type=int, default=6, help="with --captured: keep every N-th front-end match")
     args = parser.parse_args()
     if not LOGS.is_dir():
         raise SystemExit(f"{LOGS} not found: the laser logs live in ../shared/logs")
     if args.loop:
         return loops(args.revision, args.loop, args.rounds)
+    if args.captured:
+        return captured(args.revision, args.captured, args.rounds, args.every)
     import taichi_match as new
 
     with tempfile.TemporaryDirectory() as folder:
@@ -139,6 +153,67 @@ def loops(revision, names, rounds):
                       f"{1e3 * parts[2]:.2f}), {1e3 * per_scan:.1f} ms a scan (loop closing {1e3 * closing:.1f})")
             print(f"{name:13s} trajectories bit-identical: {same}", flush=True)
     del base
+
+
+def captured(revision, names, rounds, every):
+    """The loop's own front-end pairs, prepared and matched by each package in turn (see the module
+    docstring)."""
+    import taichi_match as new
+    import taichi_match.slam as new_slam
+    from taichi_match.logs import read_carmen
+
+    options = new_slam.SlamOptions().scan_matcher
+    with tempfile.TemporaryDirectory() as folder:
+        base = old_package(revision, folder)
+        packages = {"old": base, "new": new}
+
+        def same_form(grid, package):
+            if grid._code is not None:               # as the loop made it: from its trinary code
+                return package._grid._from_code(grid._code.copy(), grid.resolution, grid.corner_pose)
+            return package.GridMap(grid.prob.copy(), grid.resolution, grid.corner_pose)
+
+        for name in names:
+            mapper, kept = new_slam.Slam(), []
+            matcher = mapper._scan_matcher
+            match = matcher.match
+
+            def keep(a, b, guess, **overrides):
+                if len(kept) < 10**6 and (keep.calls % every) == 0:
+                    kept.append((a, b, np.array(guess, dtype=np.float64)))
+                keep.calls += 1
+                return match(a, b, guess, **overrides)
+
+            keep.calls = 0
+            matcher.match = keep
+            mapper.run(read_carmen(glob.glob(str(LOGS / name / f"{name}.log*"))[0]))
+            times, same = {"old": [], "new": []}, True
+            for k in range(rounds):
+                for i, (a, b, guess) in enumerate(kept):
+                    results = {}
+                    for key in ("old", "new") if (i + k) % 2 == 0 else ("new", "old"):
+                        package = packages[key]
+                        m = package.Matcher(package.MatchOptions(**options.__dict__))
+                        fresh_a, fresh_b = same_form(a, package), same_form(b, package)
+                        t0 = time.perf_counter()
+                        m.prepare(fresh_a)
+                        t1 = time.perf_counter()
+                        m.prepare(fresh_b)
+                        t2 = time.perf_counter()
+                        results[key] = m.match(fresh_a, fresh_b, guess)
+                        times[key].append((t1 - t0, t2 - t1, time.perf_counter() - t2))
+                    same &= bool(np.array_equal(results["old"].pose, results["new"].pose)
+                                 and np.array_equal(results["old"].calibrated_covariance,
+                                                    results["new"].calibrated_covariance)
+                                 and results["old"].accepted == results["new"].accepted)
+            old, now = np.array(times["old"]), np.array(times["new"])
+            ratios = np.median(now / old, axis=0)
+            print(f"{name:13s} {len(kept)} pairs x {rounds}: {revision} {1e3 * np.median(old.sum(axis=1)):.2f} ms "
+                  f"(target {1e3 * np.median(old[:, 0]):.2f}, scan {1e3 * np.median(old[:, 1]):.2f}, match "
+                  f"{1e3 * np.median(old[:, 2]):.2f}), this tree {1e3 * np.median(now.sum(axis=1)):.2f} ms "
+                  f"(target {1e3 * np.median(now[:, 0]):.2f}, scan {1e3 * np.median(now[:, 1]):.2f}, match "
+                  f"{1e3 * np.median(now[:, 2]):.2f}); median ratios: target {ratios[0]:.3f}, scan {ratios[1]:.3f}, "
+                  f"match {ratios[2]:.3f}, the pair {np.median(now.sum(axis=1) / old.sum(axis=1)):.3f}; "
+                  f"bit-identical: {same}", flush=True)
 
 
 if __name__ == "__main__":

@@ -124,10 +124,10 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     winning: 1 - hi and -1 - (1 - hi) are monotone in the envelope, so the result does not depend
     on the order. Laser submaps know 3-16 % of their cells (median, edmonton and seattle), and the
     spans hold a third of the cells or less: against the kernel that wrote every cell and each
-    stamp's value as it went (b2d6744), front-end targets prepared in 0.90-0.94 of the time, scans
-    in 0.95 (in-process A/B on captured front-end pairs of edmonton, seattle and aces, the same
-    bits). NumPy writing every cell's value before the launch (its own arithmetic, not a fill) was
-    slower in the loop than the kernel writing them.
+    stamp's value as it went (b2d6744), the loop's front-end targets prepared in 0.91-0.93 of the
+    time, its scans in 0.94-0.96, the same bits (``bench/ab_front_end.py --captured``, edmonton,
+    seattle, aces). NumPy writing every cell's value before the launch (its own arithmetic, not a
+    fill) was slower in the loop than the kernel writing them.
     """
     if prob is None and not squared:
         raise ValueError("grey walls need the map's probabilities")
