@@ -31,8 +31,8 @@ class AffineMap:
     at their centres (eq. 2), placed in B's frame by B's corner pose, moved into A's frame by the
     pose (eq. 4), and into A's grid by the inverse of A's corner pose and resolution (eq. 3).
     The coefficients are linear in (cos theta, sin theta, x, y, 1), so a batch is one product with
-    a 5 x 6 matrix made once per pair (a few NumPy calls instead of thirty: this runs before every
-    launch).
+    the 5 x 6 ``matrix`` made once per pair (a few NumPy calls instead of thirty: this runs before
+    every launch; the envelope kernel takes the matrix and does the product per pose itself).
     """
 
     def __init__(self, a: GridMap, b: GridMap, pad: int, b_pad: int = 0):
@@ -56,50 +56,18 @@ class AffineMap:
             centre = 0.5 - b_pad
             return [m00, -m10, u0 + centre * (m00 - m10), m10, m00, v0 + centre * (m10 + m00)]
 
-        self._matrix = np.array([coefficients(*row) for row in ((1.0, 0.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0, 0.0),
-                                 (0.0, 0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 0.0, 1.0))])
+        #: (5, 6): the coefficients of a pose r are (cos theta, sin theta, x, y, 1) @ matrix
+        self.matrix = np.array([coefficients(*row) for row in ((1.0, 0.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0, 0.0),
+                                (0.0, 0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 0.0, 0.0, 1.0))])
 
     def __call__(self, poses):
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        return self.from_features(pose_features(poses))
-
-    def from_features(self, features):
-        """The coefficients from ``pose_features`` (N, 5)."""
-        return features @ self._matrix
-
-
-def pose_features(poses, inverse=False):
-    """(N, 5) rows (cos theta, sin theta, x, y, 1) of the poses r (N, 3), or of r^-1."""
-    forward = _forward_features(poses)
-    return _inverse_features(forward, poses) if inverse else forward
-
-
-def pose_feature_pair(poses):
-    """``pose_features`` of r and of r^-1 (N, 5) each, from one cosine and sine per pose."""
-    forward = _forward_features(poses)
-    return forward, _inverse_features(forward, poses)
-
-
-def _forward_features(poses):
-    out = np.empty((len(poses), 5))
-    np.cos(poses[:, 2], out=out[:, 0])
-    np.sin(poses[:, 2], out=out[:, 1])
-    out[:, 2], out[:, 3] = poses[:, 0], poses[:, 1]
-    out[:, 4] = 1.0
-    return out
-
-
-def _inverse_features(forward, poses):
-    """r^-1 = (-R^T t, -theta) from the features of r."""
-    out = np.empty_like(forward)
-    c, s = forward[:, 0], forward[:, 1]
-    x, y = poses[:, 0], poses[:, 1]
-    out[:, 0] = c
-    out[:, 1] = -s
-    out[:, 2] = -(c * x + s * y)
-    out[:, 3] = s * x - c * y
-    out[:, 4] = 1.0
-    return out
+        features = np.empty((len(poses), 5))
+        np.cos(poses[:, 2], out=features[:, 0])
+        np.sin(poses[:, 2], out=features[:, 1])
+        features[:, 2], features[:, 3] = poses[:, 0], poses[:, 1]
+        features[:, 4] = 1.0
+        return features @ self.matrix
 
 
 # ---------------------------------------------------------------------------------------------
