@@ -58,7 +58,7 @@ def descend(prep_a: PreparedMap, prep_b: PreparedMap, opts: MatchOptions, r0: np
 
 def _level_cost(prep_a, prep_b, level, opts, r0, weight, counter):
     pa, pb = prep_a.level(level), prep_b.level(level)
-    engine = make_engine(opts.engine, pa, pb, opts.unknown_cost, opts.interpolation)
+    engine = make_engine(opts.engine, pa, pb, opts.unknown_cost, opts.interpolation, opts.grid_edge)
     return LevelCost(engine, pa, pb, prep_b, opts, r0, weight, counter)
 
 

@@ -53,7 +53,8 @@ class Backend(NamedTuple):
     """A backend: how to make its two evaluators from prepared maps."""
 
     dense: Callable[[PreparedMap, PreparedMap, bool], DenseEvaluator]     # (a, b, count_only)
-    envelope: Callable[[PreparedMap, PreparedMap, float, bool], EnvelopeEvaluator]   # (a, b, unknown_cost, bilinear)
+    # (a, b, unknown_cost, bilinear, edge_unknown)
+    envelope: Callable[[PreparedMap, PreparedMap, float, bool, bool], EnvelopeEvaluator]
 
 
 def _taichi() -> Backend:
@@ -68,26 +69,28 @@ def _numpy() -> Backend:
     from ._reference import NumpyDense
 
     return Backend(lambda a, b, count_only: NumpyDense(a.lower, b.lower),
-                   lambda a, b, unknown_cost, bilinear: NumpyEnvelope(a.lower, b.lower, a.blur_width, b.blur_width,
-                                                                      unknown_cost, bilinear))
+                   lambda a, b, unknown_cost, bilinear, edge: NumpyEnvelope(a.lower, b.lower, a.blur_width,
+                                                                            b.blur_width, unknown_cost, bilinear, edge))
 
 
 BACKENDS = {"taichi": _taichi, "numpy": _numpy}     # name -> the backend (its modules imported when first used)
 ENGINES = tuple(BACKENDS)
 
 
-def make_engine(name: str, a: PreparedMap, b: PreparedMap, unknown_cost: float = 0.0, interpolation: str = "nearest"):
+def make_engine(name: str, a: PreparedMap, b: PreparedMap, unknown_cost: float = 0.0, interpolation: str = "nearest",
+                grid_edge: str = "free"):
     """The engine of backend ``name`` for B in A: eq. (6) (a ``DenseEvaluator``, whose ``bilinear``
     evaluates the interpolated e), or for maps prepared with the "envelope" blur the envelope
     discrepancy (``EnvelopeDiscrepancy``), its walls' costs interpolated with ``interpolation``
-    "bilinear"."""
+    "bilinear", a wall off the other map's grid paying ``unknown_cost`` with ``grid_edge``
+    "unknown" (``MatchOptions``)."""
     if name not in BACKENDS:
         raise InvalidOptionError(f"engine must be one of {ENGINES}; got {name!r}")
     if (a.blur_kind == "envelope") != (b.blur_kind == "envelope"):
         raise InvalidOptionError("both maps must be prepared with the same kind of blur")
     backend = BACKENDS[name]()
     if a.blur_kind == "envelope":
-        return EnvelopeDiscrepancy(backend, a, b, unknown_cost, interpolation == "bilinear")
+        return EnvelopeDiscrepancy(backend, a, b, unknown_cost, interpolation == "bilinear", grid_edge == "unknown")
     return backend.dense(a, b, False)
 
 
@@ -103,8 +106,9 @@ class EnvelopeDiscrepancy:
 
     counts_free = False          # counting the overlap costs a launch of its own
 
-    def __init__(self, backend: Backend, a: PreparedMap, b: PreparedMap, unknown_cost: float, bilinear: bool = False):
-        self._evaluate = backend.envelope(a, b, unknown_cost, bilinear)
+    def __init__(self, backend: Backend, a: PreparedMap, b: PreparedMap, unknown_cost: float, bilinear: bool = False,
+                 edge_unknown: bool = False):
+        self._evaluate = backend.envelope(a, b, unknown_cost, bilinear, edge_unknown)
         self._make_dense = lambda: backend.dense(a, b, True)
         self._dense_evaluator = None
         self.dense_launches = 0          # overlap counts that count="any" could not spare

@@ -24,10 +24,12 @@ unknown cells not compared, and counts only the occupied cells, each against the
   15 -> 10 mm and 0.19 -> 0.14 degree on the simulated run). Off the other map's grid it costs
   nothing: a grid's edge is often only where a map was cropped (the paper's corridor), and
   charging for it would turn the crop into structure (a corridor would lose its degenerate
-  direction).
+  direction). Where the grid is only the box around what was seen (a laser submap's), that free
+  edge is structure instead: with ``grid_edge="unknown"`` a wall off the grid pays
+  ``unknown_cost``, as on an unknown cell no wall reaches.
 - ``w`` is the cell's occupancy (1 on trinary maps; grey on coarse pyramid levels).
 - ``interpolation="bilinear"`` (an option): a wall's cost is the bilinear blend of the costs
-  above at the four cell centres around where it lands (a corner off the grid costing 0), so e
+  above at the four cell centres around where it lands (a corner off the grid costing as above), so e
   no longer steps as walls cross cell boundaries. With the nearest cell, e along a path of poses
   on laser submaps rises and falls by a wall's worth between poses a few millimetres apart, the
   optimiser's stencil meets those steps, and a match on the given maps alone (one pyramid level)
@@ -249,11 +251,13 @@ def _build(ti):
     f64_2d = ti.types.ndarray(dtype=ti.f64, ndim=2)
 
     @ti.func
-    def wall_cost(grid: ti.template(), points: ti.template(), m, iv, iu):
+    def wall_cost(grid: ti.template(), points: ti.template(), m, iv, iu, edge: ti.template()):
         v = grid[iv, iu]
-        # unknown: w * min(unknown_cost, 1 - hi) (v = -1 - (1 - hi)); off the map (v = -4): 0
+        # unknown: w * min(unknown_cost, 1 - hi) (v = -1 - (1 - hi)); off the map (v = -4): 0, or
+        # with ``edge`` w * unknown_cost, as on an unknown cell no wall reaches
         near = ti.min(points[3, m], points[2, m] * (-1.0 - v))
-        return ti.select(v >= 0.0, points[2, m] * v, ti.select(v > -3.0, near, 0.0))
+        off = points[3, m] if ti.static(edge) else 0.0
+        return ti.select(v >= 0.0, points[2, m] * v, ti.select(v > -3.0, near, off))
 
     @ti.func
     def coefficients(matrix: ti.template(), f0, f1, f2, f3):
@@ -268,7 +272,8 @@ def _build(ti):
         return a
 
     @ti.func
-    def chunk_sum(grid: ti.template(), points: ti.template(), affine, c, bilinear: ti.template()):
+    def chunk_sum(grid: ti.template(), points: ti.template(), affine, c, bilinear: ti.template(),
+                  edge: ti.template()):
         u_max = grid.shape[1] - 1
         v_max = grid.shape[0] - 1
         c0, c1, c2 = ti.f32(affine[0]), ti.f32(affine[1]), ti.f32(affine[2])
@@ -291,18 +296,20 @@ def _build(ti):
                 v0 = ti.cast(ti.floor(vf), ti.i32)
                 fu = uf - ti.cast(u0, ti.f32)
                 fv = vf - ti.cast(v0, ti.f32)
-                top = (1.0 - fu) * wall_cost(grid, points, m, v0, u0) + fu * wall_cost(grid, points, m, v0, u0 + 1)
-                low = (1.0 - fu) * wall_cost(grid, points, m, v0 + 1, u0) + fu * wall_cost(grid, points, m, v0 + 1,
-                                                                                           u0 + 1)
+                top = ((1.0 - fu) * wall_cost(grid, points, m, v0, u0, edge)
+                       + fu * wall_cost(grid, points, m, v0, u0 + 1, edge))
+                low = ((1.0 - fu) * wall_cost(grid, points, m, v0 + 1, u0, edge)
+                       + fu * wall_cost(grid, points, m, v0 + 1, u0 + 1, edge))
                 acc += (1.0 - fv) * top + fv * low
             else:
-                acc += wall_cost(grid, points, m, iv, iu)
+                acc += wall_cost(grid, points, m, iv, iu, edge)
         return acc, cnt
 
     @ti.kernel
     def envelope_chunks(grid_a: f32_2d, points_b: f32_2d, matrix_b2a: f64_2d,
                         grid_b: f32_2d, points_a: f32_2d, matrix_a2b: f64_2d, poses: f64_2d,
-                        out: ti.types.ndarray(dtype=ti.f32, ndim=3), serial: ti.template(), bilinear: ti.template()):
+                        out: ti.types.ndarray(dtype=ti.f32, ndim=3), serial: ti.template(), bilinear: ti.template(),
+                        edge: ti.template()):
         chunks_b = (points_b.shape[1] + CHUNK - 1) // CHUNK
         chunks_a = (points_a.shape[1] + CHUNK - 1) // CHUNK
         ti.loop_config(serialize=serial)
@@ -313,10 +320,10 @@ def _build(ti):
             cs, sn = ti.cos(poses[k, 2]), ti.sin(poses[k, 2])
             # B's walls in A through r, A's through r^-1 = (-R^T t, -theta)
             if c < chunks_b:
-                acc, cnt = chunk_sum(grid_a, points_b, coefficients(matrix_b2a, cs, sn, x, y), c, bilinear)
+                acc, cnt = chunk_sum(grid_a, points_b, coefficients(matrix_b2a, cs, sn, x, y), c, bilinear, edge)
             else:
                 acc, cnt = chunk_sum(grid_b, points_a, coefficients(matrix_a2b, cs, -sn, -(cs * x + sn * y),
-                                                                    sn * x - cs * y), c - chunks_b, bilinear)
+                                                                    sn * x - cs * y), c - chunks_b, bilinear, edge)
             out[0, k, c] = acc
             out[1, k, c] = ti.f32(cnt)          # exact: a chunk has far fewer than 2**24 points
 
@@ -332,11 +339,13 @@ class EnvelopeEngine:
 
     ``a`` and ``b`` are ``PreparedMap`` objects of the "envelope" kind (their ``lower`` is the map,
     their ``blurred`` the envelope hi). ``bilinear``: each wall's cost interpolated between the four
-    cell centres around where it lands (see the module docstring).
+    cell centres around where it lands; ``edge_unknown``: a wall off the other map's grid pays
+    ``unknown_cost`` (else nothing; see the module docstring).
     """
 
-    def __init__(self, a, b, unknown_cost=0.0, bilinear=False):
+    def __init__(self, a, b, unknown_cost=0.0, bilinear=False, edge_unknown=False):
         self._bilinear = bool(bilinear)
+        self._edge = bool(edge_unknown)
         self._grid_a, self._grid_b = a.conflict, b.conflict
         self._points_b = b.wall_array(unknown_cost)
         self._points_a = a.wall_array(unknown_cost)
@@ -355,7 +364,7 @@ class EnvelopeEngine:
         if chunks == 0:
             return np.zeros(n), np.zeros(n, dtype=np.int64)
         serial = n * (self._points_b.shape[1] + self._points_a.shape[1]) < SERIAL_BELOW
-        out = self._launcher.run((poses,), (2, n, chunks), (serial, self._bilinear))
+        out = self._launcher.run((poses,), (2, n, chunks), (serial, self._bilinear, self._edge))
         values = out[0].sum(axis=1, dtype=np.float64)
         if count == "none":
             return values, None
@@ -369,22 +378,23 @@ class NumpyEnvelope:
     ``bilinear`` its cost interpolated between the four cell centres around it."""
 
     def __init__(self, a: GridMap, b: GridMap, width_a: float, width_b: float, unknown_cost=0.0,
-                 bilinear: bool = False):
+                 bilinear: bool = False, edge_unknown: bool = False):
         self._sides = []
         for src, dst, width, forward in ((b, a, width_a, True), (a, b, width_b, False)):
             rows, cols, w = wall_points(src)
             self._sides.append((src.cell_centres(rows, cols), w, dst, _envelope_everywhere(dst, width), forward))
         self._unknown_cost = unknown_cost
+        self._off = unknown_cost if edge_unknown else 0.0
         self._bilinear = bilinear
 
     def _cost(self, dst, hi_dst, rows, cols):
         """Each wall's cost at the cells (``rows``, ``cols``) of ``dst``: 1 - hi on a known cell,
-        min(unknown_cost, 1 - hi) on an unknown one, 0 off the grid."""
+        min(unknown_cost, 1 - hi) on an unknown one, 0 off the grid (``edge_unknown``: unknown_cost)."""
         inside = (rows >= 0) & (rows < dst.shape[0]) & (cols >= 0) & (cols < dst.shape[1])
         r, c = np.where(inside, rows, 0).astype(np.intp), np.where(inside, cols, 0).astype(np.intp)
         hi = hi_dst[r, c]
         known = ~np.isnan(dst.prob[r, c])
-        return np.where(inside, np.where(known, 1.0 - hi, np.minimum(self._unknown_cost, 1.0 - hi)), 0.0)
+        return np.where(inside, np.where(known, 1.0 - hi, np.minimum(self._unknown_cost, 1.0 - hi)), self._off)
 
     def __call__(self, poses, count="all"):
         """(e (N,), overlap (N,) int64), whatever ``count`` says."""

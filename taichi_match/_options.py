@@ -20,6 +20,7 @@ MAX_OPTION = 1e9                 # metres (blur, steps), metres per radian, K: f
 OPTIMIZERS = tuple(XTOL_DEFAULT)
 INTERPOLATIONS = ("nearest", "bilinear")
 EVIDENCE = ("trinary", "probability")
+GRID_EDGES = ("free", "unknown")
 MAX_LEVELS = 8
 # MatchOptions.paper(): the fields that differ from the defaults
 PAPER_OPTIONS = dict(blur_kind="gaussian", blur=0.5, blur_growth=1.0, unknown_cost=0.0, evidence="probability")
@@ -41,6 +42,11 @@ class MatchOptions:
     blur_growth : the blur of each coarser pyramid level is this many times wider.
     unknown_cost : what a wall landing on an unknown cell inside the other map's grid pays in the
         envelope discrepancy (0: not compared, as the paper treats unknown cells).
+    grid_edge : what a wall landing off the other map's grid pays in the envelope discrepancy:
+        "free" (nothing: a grid's edge is often where a map was cropped, and charging for it would
+        make the crop structure) or "unknown" (``unknown_cost``, as on an unknown cell no wall
+        reaches: for maps whose grid is only the box around what a laser saw, whose edge would
+        otherwise be structure; ``taichi_match.slam``'s matchers).
     evidence : how grey probabilities enter: "trinary" (as ROS map_saver writes them: p > 0.65
         occupied, p < 0.196 free, else unknown; ``_grid.trinary``) or "probability" (as given).
     prior_weight : K of eq. (8), discrepancy units per metre of ||r - r0||; None (the default)
@@ -108,6 +114,7 @@ class MatchOptions:
     blur_kind: Literal["gaussian", "ramp", "envelope"] = "envelope"
     blur_growth: float = 2.0
     unknown_cost: float = 0.3
+    grid_edge: Literal["free", "unknown"] = "free"
     evidence: Literal["trinary", "probability"] = "trinary"
     prior_weight: Optional[float] = None
     prior_weight_per_cell: float = 8.6e-4
@@ -152,6 +159,8 @@ class MatchOptions:
         _check_integer("max_iterations", self.max_iterations, minimum=0)
         _check_integer("levels", self.levels, minimum=1, maximum=MAX_LEVELS)
         _check_integer("refine_iterations", self.refine_iterations, minimum=0)
+        if self.grid_edge not in GRID_EDGES:
+            raise InvalidOptionError(f"grid_edge must be one of {GRID_EDGES}; got {shown(self.grid_edge)}")
         if self.evidence not in EVIDENCE:
             raise InvalidOptionError(f"evidence must be one of {EVIDENCE}; got {self.evidence!r}")
         if self.blur_kind not in BLUR_KINDS:

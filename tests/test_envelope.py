@@ -122,6 +122,60 @@ def test_kernel_equals_numpy_oracle(case, unknown_cost, rng):
     assert EnvelopeEngine(pa, pb, unknown_cost)(FAR_POSES)[1].tolist() == [0] * len(FAR_POSES)
 
 
+def off_grid_weight(dst, src, pose):
+    """The summed weight of ``src``'s walls (p >= 0.5) whose centres, moved into ``dst``'s frame by
+    ``pose`` (r_dst2src), land off ``dst``'s grid; walls within 1e-4 cells of its edge are counted
+    as ties (second value)."""
+    rows, cols = walls_of(src)
+    r, c = dst.grid_coordinates(transform_points(pose, src.cell_centres(rows, cols)))
+    h, w = dst.shape
+    off = (r < 0) | (r >= h) | (c < 0) | (c >= w)
+    tie = (np.abs(r) < 1e-4) | (np.abs(r - h) < 1e-4) | (np.abs(c) < 1e-4) | (np.abs(c - w) < 1e-4)
+    return float(src.prob[rows, cols][off].sum()), int(np.count_nonzero(tie))
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_an_unknown_grid_edge_charges_each_wall_off_the_grid_the_unknown_cost(case, rng):
+    """``grid_edge="unknown"``: a wall landing off the other map's grid pays unknown_cost times its
+    weight instead of nothing, both ways, in the kernel and the oracle alike (nearest and
+    bilinear); everything else is unchanged, so the two settings differ by exactly that sum."""
+    a, b, pa, pb, poses = oracle_case(case, rng)
+    cost = 0.3
+    edge = {name: make_engine(name, pa, pb, cost, grid_edge="unknown")(poses)[0] for name in ("taichi", "numpy")}
+    free = make_engine("numpy", pa, pb, cost)(poses)[0]
+    expected, ties = np.zeros(len(poses)), np.zeros(len(poses), dtype=int)
+    for k, pose in enumerate(poses):
+        (b_off, b_ties), (a_off, a_ties) = off_grid_weight(a, b, pose), off_grid_weight(b, a, inverse(pose))
+        expected[k], ties[k] = cost * (b_off + a_off), b_ties + a_ties
+    clean = ties == 0
+    np.testing.assert_allclose((edge["numpy"] - free)[clean], expected[clean], rtol=1e-9, atol=1e-9)
+    assert expected.max() > 1.0                      # walls did land off the grids
+    walls = len(walls_of(a)[0]) + len(walls_of(b)[0])
+    wall_ties = np.array([boundary_ties(a, b, p, walls_of(b)) + boundary_ties(b, a, inverse(p), walls_of(a))
+                          for p in poses])
+    np.testing.assert_allclose(edge["taichi"][wall_ties == 0], edge["numpy"][wall_ties == 0], rtol=1e-5, atol=1e-4)
+    bilinear = [make_engine(name, pa, pb, cost, "bilinear", "unknown")(poses)[0] for name in ("taichi", "numpy")]
+    np.testing.assert_allclose(bilinear[0], bilinear[1], rtol=1e-5, atol=1e-5 * walls)
+    # millions of cells away every wall of both maps is off the other's grid
+    everything = cost * (a.prob[walls_of(a)].sum() + b.prob[walls_of(b)].sum())
+    for name in ("taichi", "numpy"):
+        for interpolation in ("nearest", "bilinear"):
+            far = make_engine(name, pa, pb, cost, interpolation, "unknown")(FAR_POSES)[0]
+            np.testing.assert_allclose(far, everything, rtol=1e-5)
+
+
+def test_the_grid_edge_option_reaches_the_match(room_pair):
+    """A matcher with ``grid_edge="unknown"`` evaluates the discrepancy so: at the truth, with B's
+    grid larger than what A covers, its walls off A's grid add to e."""
+    a, b = room_pair
+    free = Matcher(levels=1, max_iterations=0, refine_iterations=0).match(a, b, TRUTH)
+    edge = Matcher(levels=1, max_iterations=0, refine_iterations=0, grid_edge="unknown").match(a, b, TRUTH)
+    pa, pb = PreparedMap(a, 0.1, "envelope", evidence="trinary"), PreparedMap(b, 0.1, "envelope", evidence="trinary")
+    expected = make_engine("numpy", pa, pb, 0.3, grid_edge="unknown")([TRUTH])[0][0]
+    assert edge.discrepancy == pytest.approx(expected, rel=1e-4)
+    assert edge.discrepancy > free.discrepancy + 100.0        # the room's walls off A: 0.3 each
+
+
 def test_far_poses_mixed_into_a_batch_do_not_disturb_the_others(rng):
     a = sparse_walls_map(rng, (40, 50), 0.1, (-2.0, -2.5))
     b = sparse_walls_map(rng, (30, 30), 0.1, (-1.5, -1.5))
@@ -516,6 +570,7 @@ def test_bilinear_envelope_matches_with_the_newton_driver(room_pair):
     ("unknown_cost", True), ("unknown_cost", None),
     ("blur_growth", 0.5), ("blur_growth", 17.0), ("blur_growth", float("inf")), ("blur_growth", "2"),
     ("evidence", "binary"), ("evidence", None), ("evidence", "Trinary"),
+    ("grid_edge", "Unknown"), ("grid_edge", None), ("grid_edge", True), ("grid_edge", ["free"]),
 ])
 def test_bad_envelope_options_are_refused(field, value):
     with pytest.raises(InvalidOptionError, match=field):
@@ -523,7 +578,8 @@ def test_bad_envelope_options_are_refused(field, value):
 
 
 @pytest.mark.parametrize("field, value", [("unknown_cost", 0.0), ("unknown_cost", 1.0), ("unknown_cost", 0),
-                                          ("blur_growth", 1.0), ("blur_growth", 16), ("evidence", "probability")])
+                                          ("blur_growth", 1.0), ("blur_growth", 16), ("evidence", "probability"),
+                                          ("grid_edge", "free"), ("grid_edge", "unknown")])
 def test_edge_values_of_envelope_options_are_accepted(field, value):
     assert getattr(MatchOptions(**{field: value}), field) == value
 
