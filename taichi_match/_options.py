@@ -46,7 +46,7 @@ class MatchOptions:
         "free" (nothing: a grid's edge is often where a map was cropped, and charging for it would
         make the crop structure) or "unknown" (``unknown_cost``, as on an unknown cell no wall
         reaches: for maps whose grid is only the box around what a laser saw, whose edge would
-        otherwise be structure; ``taichi_match.slam``'s matchers).
+        otherwise be structure; measured on the mapping loop's loop closures in docs/slam.md).
     evidence : how grey probabilities enter: "trinary" (as ROS map_saver writes them: p > 0.65
         occupied, p < 0.196 free, else unknown; ``_grid.trinary``) or "probability" (as given).
     prior_weight : K of eq. (8), discrepancy units per metre of ||r - r0||; None (the default)

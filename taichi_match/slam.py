@@ -388,6 +388,11 @@ class SlamOptions:
         False: a submap's frame is its first scan's node (the default before 2026-12-06).
     matcher : the ``MatchOptions`` of the loop-closure matches. Both matchers leave the overlap
         uncounted (``count_overlap=False``): the loop reads the pose, covariance and verdict only.
+        With ``grid_edge="unknown"`` a wall off the other submap's grid (the box around its beams)
+        pays as on an unknown cell, and the box's edge no longer pulls a loop closure: twenty runs
+        per log (2026-12-06, bench/SLAM_grid_edge.md against bench/SLAM.md), the simulated run's
+        wrong loop closures 8 -> 3 (median), fewer on four real logs too, but 129 runs of 180
+        within the ATE target against 149 (fhw 18 -> 5, its map crisper all the same).
     scan_matcher : the ``MatchOptions`` of the front end's scan-to-submap matches: by default the
         envelope with each wall's cost interpolated between the four cell centres around it
         (``interpolation="bilinear"``) on two pyramid levels. With the nearest cell's cost a single
