@@ -45,7 +45,7 @@ The kernel: for a batch of N poses, per (pose, chunk of ``CHUNK`` points) one pa
 atomics (bit-identical run after run). It takes the poses themselves and makes each one's affine
 maps (eq. 5: ``_cost.AffineMap.matrix`` times its cosine, sine and translation, A's points
 through the inverse pose), which NumPy made before each launch in a tenth of a front-end match's
-time (measured: the match 0.93 of its time, the same float32 coefficients). Small batches run on
+time (measured: the match 0.93-0.95 of its time, the same float32 coefficients). Small batches run on
 one thread (``SERIAL_BELOW``). Grids are float32 padded with ``PAD`` cells off the map (-4),
 ``1 - hi`` on known cells and ``-1 - (1 - hi)`` on unknown ones (in [-2, -1]); points are a
 (4, M) float32 array of columns ``(row, col, w, w * unknown_cost)``, cell indices in their own
