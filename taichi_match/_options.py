@@ -159,7 +159,7 @@ class MatchOptions:
         _check_integer("max_iterations", self.max_iterations, minimum=0)
         _check_integer("levels", self.levels, minimum=1, maximum=MAX_LEVELS)
         _check_integer("refine_iterations", self.refine_iterations, minimum=0)
-        if self.grid_edge not in GRID_EDGES:
+        if not (isinstance(self.grid_edge, str) and self.grid_edge in GRID_EDGES):
             raise InvalidOptionError(f"grid_edge must be one of {GRID_EDGES}; got {shown(self.grid_edge)}")
         if self.evidence not in EVIDENCE:
             raise InvalidOptionError(f"evidence must be one of {EVIDENCE}; got {self.evidence!r}")

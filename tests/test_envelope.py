@@ -571,6 +571,7 @@ def test_bilinear_envelope_matches_with_the_newton_driver(room_pair):
     ("blur_growth", 0.5), ("blur_growth", 17.0), ("blur_growth", float("inf")), ("blur_growth", "2"),
     ("evidence", "binary"), ("evidence", None), ("evidence", "Trinary"),
     ("grid_edge", "Unknown"), ("grid_edge", None), ("grid_edge", True), ("grid_edge", ["free"]),
+    ("grid_edge", np.array(["free", "unknown"])),
 ])
 def test_bad_envelope_options_are_refused(field, value):
     with pytest.raises(InvalidOptionError, match=field):
