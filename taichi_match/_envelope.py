@@ -56,7 +56,7 @@ vectorise).
 import numpy as np
 
 from ._cost import AffineMap
-from ._distance import _taichi_type, wall_runs
+from ._distance import _SCRATCH, _taichi_type, wall_runs
 from ._grid import GridMap, cells
 from ._kernels import PAD
 from ._launch import Launcher, launch, row_spread
@@ -120,19 +120,20 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     and hi is the envelope alone (1 on the walls).
 
     NumPy fills the grid with the value of an unknown cell that no wall reaches (-2; -4 on the ring
-    off the map) and the squared distances with their value beyond reach; then one Taichi launch
-    works a row per work item over the runs of walls near it (``_distance.wall_runs``). Walls at 1:
-    each run lowers the squared distances of the cells it reaches (the least wins, no branch), then
-    the row's values are written from them over its known span (first known cell to last) and every
-    cell a run reached. Grey walls: the span's values are written first, then each run writes a
-    cell's value where it comes brighter, the least (known cells) or largest (unknown ones)
-    winning: 1 - hi and -1 - (1 - hi) are monotone in the envelope, so the result does not depend
-    on the order. Laser submaps know 3-16 % of their cells (median, edmonton and seattle), and the
-    spans hold a third of the cells or less: against the kernel that wrote every cell and each
-    stamp's value as it went (b2d6744), the loop's front-end targets prepared in 0.91-0.93 of the
-    time, its scans in 0.94-0.96, the same bits (``bench/ab_front_end.py --captured``, edmonton,
-    seattle, aces). NumPy writing every cell's value before the launch (its own arithmetic, not a
-    fill) was slower in the loop than the kernel writing them.
+    off the map); then one Taichi launch works a row per work item over the runs of walls near it
+    (``_distance.wall_runs``): each run lowers the squared distances (walls at 1; the least wins,
+    no branch) or raises the envelope (grey walls, in a float64 scratch row: the largest wins) of
+    the cells it reaches, then the row's values are written from those over its known span (first
+    known cell to last) and every cell a run reached. Laser submaps know 3-16 % of their cells
+    (median, edmonton and seattle), and the spans hold a third of the cells or less: against the
+    kernel that wrote every cell and each stamp's value as it went (b2d6744), the loop's front-end
+    targets prepared in 0.91-0.93 of the time, its scans in 0.94-0.96, the same bits
+    (``bench/ab_front_end.py --captured``, edmonton, seattle, aces). Grey walls wrote each stamp's
+    value as it went, min(value, 1 - max(p, e)), until 2026-12-07: the envelope's maximum first
+    and each value once, from a table of the profile by row and column offset (contiguous
+    reads), is the same (both are monotone in e), and took 0.70-0.75 of the launch's time on
+    edmonton's coarse levels. NumPy writing every cell's value before the launch (its own
+    arithmetic, not a fill) was slower in the loop than the kernel writing them.
     """
     if prob is None and not squared:
         raise ValueError("grey walls need the map's probabilities")
@@ -141,45 +142,101 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     out[:PAD], out[h + PAD:] = _OFF_MAP, _OFF_MAP                 # the ring off the map
     out[PAD:h + PAD, :PAD], out[PAD:h + PAD, w + PAD:] = _OFF_MAP, _OFF_MAP
     profile = envelope_profile(reach, ratio)
-    dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
-    distances = np.empty((h, w) if squared else (1, 1), dtype=dtype)
-    distances.fill(np.iinfo(dtype).max)
     rows, cols, weights = walls
     monotone = squared or bool(np.all(np.diff(profile) <= 0))
     rows, starts, ends, weights, first, half = wall_runs(rows, cols, None if squared else weights, (h, w), reach,
                                                          monotone)
+    p = np.zeros(1) if prob is None else np.ascontiguousarray(prob, dtype=np.float64).reshape(-1)
+    unknown = np.ascontiguousarray(unknown).view(np.uint8).reshape(-1)
+    runs = (rows, starts, ends, weights, first, half, row_spread(h), unknown, p)
+    if not squared:
+        if h and w:
+            offsets = np.arange(reach + 1)                          # the profile by row and column offset
+            table = profile[np.minimum(offsets[:, None] ** 2 + offsets ** 2, reach * reach + 1)]
+            with kernel_lock():
+                envelope = _SCRATCH.get("envelope", (h * w,), np.float64)
+                launch(kernels(_build_conflict)[1], (*runs, table, envelope, out.reshape(-1)))
+        return out, None
+    dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
+    distances = np.empty((h, w), dtype=dtype)
+    distances.fill(np.iinfo(dtype).max)
     costs = np.empty((2, len(profile)), dtype=np.float32)        # by squared distance: known, unknown cells
     costs[0] = 1.0 - profile                                      # 1 - hi in float64, rounded once
     np.subtract(np.float32(-1.0), costs[0], out=costs[1])
-    p = np.zeros(1) if prob is None else np.ascontiguousarray(prob, dtype=np.float64).reshape(-1)
-    unknown = np.ascontiguousarray(unknown).view(np.uint8).reshape(-1)
     if h and w:
         with kernel_lock():
-            launch(kernels(_build_conflict),
-                   (rows, starts, ends, weights, profile, costs, first, half, row_spread(h),
-                    unknown, p, distances.reshape(-1),
-                    out.reshape(-1)),
-                   (prob is not None, not squared, _taichi_type(dtype)))
-    return out, distances if squared else None
+            launch(kernels(_build_conflict)[0], (*runs, profile, costs, distances.reshape(-1), out.reshape(-1)),
+                   (prob is not None, _taichi_type(dtype)))
+    return out, distances
 
 
 def _build_conflict(ti):
+    i32 = ti.types.ndarray(dtype=ti.i32, ndim=1)
+    f64 = ti.types.ndarray(dtype=ti.f64, ndim=1)
+
+    # Both kernels: a row of the map per work item (the rows spread out: ``_launch.row_spread``),
+    # which stamps the runs of walls within reach rows of it (sorted by row, ``first[r]`` the first
+    # on row r or later), each reaching ``half[d + reach]`` cells beyond either end on row d away;
+    # the row belongs to its work item, so no atomics, and the extrema do not depend on the order.
+    # The grids come flat (a loop over 1-D indices ran several times faster than one over 2-D ones
+    # here, and each array argument costs a launch a few microseconds): the map's h x w cells
+    # (h + 1 entries in ``first``), the conflict grid's (h + 2 PAD) x (w + 2 PAD)
+
+    @ti.func
+    def span(unknown: ti.template(), cell, w, i, h, reach, first: ti.template(), rows_: ti.template(),
+             starts: ti.template(), ends: ti.template(), half: ti.template()):
+        # the cells of the row to write: from its first known cell to its last, and every cell a
+        # run reaches
+        lo, hi = 0, w
+        while lo < w and unknown[cell + lo] != 0:
+            lo += 1
+        while hi > lo and unknown[cell + hi - 1] != 0:
+            hi -= 1
+        if lo == hi:
+            lo, hi = w, 0
+        for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
+            chord = half[rows_[k] - i + reach]
+            lo, hi = ti.min(lo, ti.max(starts[k] - chord, 0)), ti.max(hi, ti.min(ends[k] + chord + 1, w))
+        return lo, hi
+
     @ti.kernel
-    def conflict(rows_: ti.types.ndarray(dtype=ti.i32, ndim=1), starts: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 ends: ti.types.ndarray(dtype=ti.i32, ndim=1), weights: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                 profile: ti.types.ndarray(dtype=ti.f64, ndim=1), costs: ti.types.ndarray(dtype=ti.f32, ndim=2),
-                 first: ti.types.ndarray(dtype=ti.i32, ndim=1), half: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 spread: ti.types.ndarray(dtype=ti.i32, ndim=1),
-                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: ti.types.ndarray(dtype=ti.f64, ndim=1),
-                 squared: ti.types.ndarray(ndim=1), out: ti.types.ndarray(dtype=ti.f32, ndim=1),
-                 grey: ti.template(), weighted: ti.template(), dt: ti.template()):
-        # a row of the map per work item (the rows spread out: ``_launch.row_spread``), which
-        # stamps the runs of walls within reach rows of it (sorted by row, ``first[r]`` the first
-        # on row r or later), each reaching ``half[d + reach]`` cells beyond either end on row d
-        # away; the row belongs to its work item, so no atomics, and the extrema do not depend on
-        # the order. The grids come flat (a loop over 1-D indices ran several times faster than
-        # one over 2-D ones here, and each array argument costs a launch a few microseconds): the
-        # map's h x w cells (h + 1 entries in ``first``), the conflict grid's (h + 2 PAD) x (w + 2 PAD)
+    def nearest(rows_: i32, starts: i32, ends: i32, weights: f64, first: i32, half: i32, spread: i32,
+                unknown: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64, profile: f64,
+                costs: ti.types.ndarray(dtype=ti.f32, ndim=2), squared: ti.types.ndarray(ndim=1),
+                out: ti.types.ndarray(dtype=ti.f32, ndim=1), grey: ti.template(), dt: ti.template()):
+        # walls at 1: the squared distances first (the least per cell, no branch), then the values
+        # from them (``grey``: a probability map, hi = max(p, envelope))
+        h = first.shape[0] - 1
+        w = unknown.shape[0] // h
+        width = w + 2 * PAD
+        reach = (half.shape[0] - 1) // 2
+        last = profile.shape[0] - 1                      # beyond reach: the profile's 0
+        for i, part in ti.ndrange(h, spread.shape[0]):
+            if part == 0:
+                cell, row = i * w, (i + PAD) * width + PAD
+                lo, hi = span(unknown, cell, w, i, h, reach, first, rows_, starts, ends, half)
+                for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
+                    di = rows_[k] - i
+                    dy2 = di * di
+                    chord = half[di + reach]
+                    a, b = starts[k], ends[k]
+                    for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
+                        dx = ti.max(ti.max(a - j, j - b), 0)
+                        squared[cell + j] = ti.cast(ti.min(ti.cast(squared[cell + j], ti.i32), dy2 + dx * dx), dt)
+                for j in range(lo, hi):
+                    q = ti.min(ti.cast(squared[cell + j], ti.i32), last)
+                    c = costs[0, q]
+                    if ti.static(grey):
+                        c = ti.cast(1.0 - ti.max(prob[cell + j], profile[q]), ti.f32)
+                    out[row + j] = ti.select(unknown[cell + j] == 0, c, costs[1, q])
+
+    @ti.kernel
+    def weighted(rows_: i32, starts: i32, ends: i32, weights: f64, first: i32, half: i32, spread: i32,
+                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64,
+                 table: ti.types.ndarray(dtype=ti.f64, ndim=2), envelope: f64,
+                 out: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+        # grey walls: the envelope's maximum per cell (weight * ``table[row offset, column
+        # offset]``, the profile at that squared distance), then the values from it
         h = first.shape[0] - 1
         w = unknown.shape[0] // h
         width = w + 2 * PAD
@@ -187,50 +244,27 @@ def _build_conflict(ti):
         for i, part in ti.ndrange(h, spread.shape[0]):
             if part == 0:
                 cell, row = i * w, (i + PAD) * width + PAD
-                lo, hi = 0, w                            # the row's known cells lie in [lo, hi)
-                while lo < w and unknown[cell + lo] != 0:
-                    lo += 1
-                while hi > lo and unknown[cell + hi - 1] != 0:
-                    hi -= 1
-                if ti.static(weighted):                  # grey walls: the brightest wins
-                    for j in range(lo, hi):
-                        out[row + j] = ti.select(unknown[cell + j] == 0, ti.cast(1.0 - prob[cell + j], ti.f32),
-                                                 ti.f32(-2.0))
-                    for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
-                        di = rows_[k] - i
-                        chord = half[di + reach]
-                        a, b = starts[k], ends[k]
-                        for j in range(ti.max(a - chord, 0), ti.min(b + chord + 1, w)):
-                            dx = ti.max(ti.max(a - j, j - b), 0)
-                            e = weights[k] * profile[di * di + dx * dx]
-                            if unknown[cell + j] == 0:
-                                out[row + j] = ti.min(out[row + j], ti.cast(1.0 - ti.max(prob[cell + j], e), ti.f32))
-                            else:
-                                out[row + j] = ti.max(out[row + j], ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
-                else:                                    # walls at 1: the nearest wins
-                    # the squared distances first (the least per cell, no branch), then the values
-                    # over the row's known span and every stamped cell, each from its distance
-                    if lo == hi:
-                        lo, hi = w, 0
-                    for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
-                        di = rows_[k] - i
-                        dy2 = di * di
-                        chord = half[di + reach]
-                        a, b = starts[k], ends[k]
-                        j0, j1 = ti.max(a - chord, 0), ti.min(b + chord + 1, w)
-                        lo, hi = ti.min(lo, j0), ti.max(hi, j1)
-                        for j in range(j0, j1):
-                            dx = ti.max(ti.max(a - j, j - b), 0)
-                            squared[cell + j] = ti.cast(ti.min(ti.cast(squared[cell + j], ti.i32), dy2 + dx * dx), dt)
-                    last = profile.shape[0] - 1                  # beyond reach: the profile's 0
-                    for j in range(lo, hi):
-                        q = ti.min(ti.cast(squared[cell + j], ti.i32), last)
-                        c = costs[0, q]
-                        if ti.static(grey):
-                            c = ti.cast(1.0 - ti.max(prob[cell + j], profile[q]), ti.f32)
-                        out[row + j] = ti.select(unknown[cell + j] == 0, c, costs[1, q])
+                lo, hi = span(unknown, cell, w, i, h, reach, first, rows_, starts, ends, half)
+                for j in range(lo, hi):
+                    envelope[cell + j] = 0.0
+                for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
+                    di = rows_[k] - i
+                    chord = half[di + reach]
+                    a, b, weight = starts[k], ends[k], weights[k]
+                    t = ti.abs(di)
+                    for j in range(ti.max(a - chord, 0), a):
+                        envelope[cell + j] = ti.max(envelope[cell + j], weight * table[t, a - j])
+                    along = weight * table[t, 0]
+                    for j in range(a, b + 1):
+                        envelope[cell + j] = ti.max(envelope[cell + j], along)
+                    for j in range(b + 1, ti.min(b + chord + 1, w)):
+                        envelope[cell + j] = ti.max(envelope[cell + j], weight * table[t, j - b])
+                for j in range(lo, hi):
+                    e = envelope[cell + j]
+                    out[row + j] = ti.select(unknown[cell + j] == 0, ti.cast(1.0 - ti.max(prob[cell + j], e), ti.f32),
+                                             ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
 
-    return conflict
+    return nearest, weighted
 
 
 def wall_points(grid: GridMap, occupied: float = 0.5):
