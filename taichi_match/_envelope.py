@@ -73,6 +73,7 @@ CHUNK = 256
 # The sums are the same either way (one per chunk, each summed in order).
 SERIAL_BELOW = 100_000
 _OFF_MAP = np.float32(-4.0)
+WALL = 0.5                      # a cell with p >= this is a wall, weighing p (``wall_points``)
 
 
 def conflict_grid(hi: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -105,10 +106,16 @@ def envelope_profile(reach: int, ratio: float) -> np.ndarray:
     return np.append(profile, 0.0)
 
 
-def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, walls, *,
-                       squared: bool = False):
+def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls, *, squared: bool = False):
     """``conflict_grid`` from the walls' envelope stamped within its reach: hi = max(p, envelope)
     on known cells, the envelope on unknown ones. Returns (conflict grid, squared distances or None).
+
+    ``known``: (H, W) bool or uint8, nonzero on the known cells: a mask, or a map's codes
+    (``_grid._from_code``: 0 unknown). ``prob``: the probabilities, (H, W) float64, or with codes
+    a float64 table of each code's, or None. With codes no mask and no float64 map is made: the
+    mapping loop's front-end targets and scans prepared (both levels) in 0.96-0.98 of the time
+    against their coarse levels' float64 probabilities and unknown masks, the same bits
+    (``bench/ab_front_end.py --captured``, edmonton, seattle, aces, 2026-12-07).
 
     ``walls``: (rows, cols, weights). ``squared``: the walls all weigh 1, and their squared
     distances within ``reach`` (``envelope_reach``) are kept as ``_distance.near_squared_distance``
@@ -137,7 +144,7 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     """
     if prob is None and not squared:
         raise ValueError("grey walls need the map's probabilities")
-    h, w = unknown.shape
+    h, w = known.shape
     out = np.full((h + 2 * PAD, w + 2 * PAD), np.float32(-2.0))  # unknown where no wall reaches
     out[:PAD], out[h + PAD:] = _OFF_MAP, _OFF_MAP                 # the ring off the map
     out[PAD:h + PAD, :PAD], out[PAD:h + PAD, w + PAD:] = _OFF_MAP, _OFF_MAP
@@ -147,15 +154,16 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     rows, starts, ends, weights, first, half = wall_runs(rows, cols, None if squared else weights, (h, w), reach,
                                                          monotone)
     p = np.zeros(1) if prob is None else np.ascontiguousarray(prob, dtype=np.float64).reshape(-1)
-    unknown = np.ascontiguousarray(unknown).view(np.uint8).reshape(-1)
-    runs = (rows, starts, ends, weights, first, half, row_spread(h), unknown, p)
+    coded = prob is not None and np.ndim(prob) == 1             # a table of the codes' probabilities
+    known = np.ascontiguousarray(known).view(np.uint8).reshape(-1)
+    runs = (rows, starts, ends, weights, first, half, row_spread(h), known, p)
     if not squared:
         if h and w:
             offsets = np.arange(reach + 1)                          # the profile by row and column offset
             table = profile[np.minimum(offsets[:, None] ** 2 + offsets ** 2, reach * reach + 1)]
             with kernel_lock():
                 envelope = _SCRATCH.get("envelope", (h * w,), np.float64)
-                launch(kernels(_build_conflict)[1], (*runs, table, envelope, out.reshape(-1)))
+                launch(kernels(_build_conflict)[1], (*runs, table, envelope, out.reshape(-1)), coded)
         return out, None
     dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
     distances = np.empty((h, w), dtype=dtype)
@@ -166,7 +174,7 @@ def near_conflict_grid(prob, unknown: np.ndarray, reach: int, ratio: float, wall
     if h and w:
         with kernel_lock():
             launch(kernels(_build_conflict)[0], (*runs, profile, costs, distances.reshape(-1), out.reshape(-1)),
-                   (prob is not None, _taichi_type(dtype)))
+                   (prob is not None, coded, _taichi_type(dtype)))
     return out, distances
 
 
@@ -183,14 +191,14 @@ def _build_conflict(ti):
     # (h + 1 entries in ``first``), the conflict grid's (h + 2 PAD) x (w + 2 PAD)
 
     @ti.func
-    def span(unknown: ti.template(), cell, w, i, h, reach, first: ti.template(), rows_: ti.template(),
+    def span(known: ti.template(), cell, w, i, h, reach, first: ti.template(), rows_: ti.template(),
              starts: ti.template(), ends: ti.template(), half: ti.template()):
         # the cells of the row to write: from its first known cell to its last, and every cell a
         # run reaches
         lo, hi = 0, w
-        while lo < w and unknown[cell + lo] != 0:
+        while lo < w and known[cell + lo] == 0:
             lo += 1
-        while hi > lo and unknown[cell + hi - 1] != 0:
+        while hi > lo and known[cell + hi - 1] == 0:
             hi -= 1
         if lo == hi:
             lo, hi = w, 0
@@ -199,22 +207,33 @@ def _build_conflict(ti):
             lo, hi = ti.min(lo, ti.max(starts[k] - chord, 0)), ti.max(hi, ti.min(ends[k] + chord + 1, w))
         return lo, hi
 
+    @ti.func
+    def p_at(prob: ti.template(), known: ti.template(), c, coded: ti.template()):
+        # the probability of cell c: its own, or its code's (``known`` then holds the codes)
+        p = ti.f64(0.0)
+        if ti.static(coded):
+            p = prob[ti.cast(known[c], ti.i32)]
+        else:
+            p = prob[c]
+        return p
+
     @ti.kernel
     def nearest(rows_: i32, starts: i32, ends: i32, weights: f64, first: i32, half: i32, spread: i32,
-                unknown: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64, profile: f64,
+                known: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64, profile: f64,
                 costs: ti.types.ndarray(dtype=ti.f32, ndim=2), squared: ti.types.ndarray(ndim=1),
-                out: ti.types.ndarray(dtype=ti.f32, ndim=1), grey: ti.template(), dt: ti.template()):
+                out: ti.types.ndarray(dtype=ti.f32, ndim=1), grey: ti.template(), coded: ti.template(),
+                dt: ti.template()):
         # walls at 1: the squared distances first (the least per cell, no branch), then the values
         # from them (``grey``: a probability map, hi = max(p, envelope))
         h = first.shape[0] - 1
-        w = unknown.shape[0] // h
+        w = known.shape[0] // h
         width = w + 2 * PAD
         reach = (half.shape[0] - 1) // 2
         last = profile.shape[0] - 1                      # beyond reach: the profile's 0
         for i, part in ti.ndrange(h, spread.shape[0]):
             if part == 0:
                 cell, row = i * w, (i + PAD) * width + PAD
-                lo, hi = span(unknown, cell, w, i, h, reach, first, rows_, starts, ends, half)
+                lo, hi = span(known, cell, w, i, h, reach, first, rows_, starts, ends, half)
                 for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
                     di = rows_[k] - i
                     dy2 = di * di
@@ -227,24 +246,24 @@ def _build_conflict(ti):
                     q = ti.min(ti.cast(squared[cell + j], ti.i32), last)
                     c = costs[0, q]
                     if ti.static(grey):
-                        c = ti.cast(1.0 - ti.max(prob[cell + j], profile[q]), ti.f32)
-                    out[row + j] = ti.select(unknown[cell + j] == 0, c, costs[1, q])
+                        c = ti.cast(1.0 - ti.max(p_at(prob, known, cell + j, coded), profile[q]), ti.f32)
+                    out[row + j] = ti.select(known[cell + j] != 0, c, costs[1, q])
 
     @ti.kernel
     def weighted(rows_: i32, starts: i32, ends: i32, weights: f64, first: i32, half: i32, spread: i32,
-                 unknown: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64,
+                 known: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64,
                  table: ti.types.ndarray(dtype=ti.f64, ndim=2), envelope: f64,
-                 out: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+                 out: ti.types.ndarray(dtype=ti.f32, ndim=1), coded: ti.template()):
         # grey walls: the envelope's maximum per cell (weight * ``table[row offset, column
         # offset]``, the profile at that squared distance), then the values from it
         h = first.shape[0] - 1
-        w = unknown.shape[0] // h
+        w = known.shape[0] // h
         width = w + 2 * PAD
         reach = (half.shape[0] - 1) // 2
         for i, part in ti.ndrange(h, spread.shape[0]):
             if part == 0:
                 cell, row = i * w, (i + PAD) * width + PAD
-                lo, hi = span(unknown, cell, w, i, h, reach, first, rows_, starts, ends, half)
+                lo, hi = span(known, cell, w, i, h, reach, first, rows_, starts, ends, half)
                 for j in range(lo, hi):
                     envelope[cell + j] = 0.0
                 for k in range(first[ti.max(i - reach, 0)], first[ti.min(i + reach + 1, h)]):
@@ -261,13 +280,13 @@ def _build_conflict(ti):
                         envelope[cell + j] = ti.max(envelope[cell + j], weight * table[t, j - b])
                 for j in range(lo, hi):
                     e = envelope[cell + j]
-                    out[row + j] = ti.select(unknown[cell + j] == 0, ti.cast(1.0 - ti.max(prob[cell + j], e), ti.f32),
-                                             ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
+                    value = ti.cast(1.0 - ti.max(p_at(prob, known, cell + j, coded), e), ti.f32)
+                    out[row + j] = ti.select(known[cell + j] != 0, value, ti.f32(-1.0) - ti.cast(1.0 - e, ti.f32))
 
     return nearest, weighted
 
 
-def wall_points(grid: GridMap, occupied: float = 0.5):
+def wall_points(grid: GridMap, occupied: float = WALL):
     """(rows, cols, weights): the cells of ``grid`` with p >= ``occupied``, weighted by p."""
     p = grid.prob
     rows, cols = cells(p >= occupied)           # False on unknown (NaN) cells

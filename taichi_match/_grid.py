@@ -15,6 +15,7 @@ Conventions, stated once for the whole library:
 """
 
 import numbers
+from typing import Optional
 
 import numpy as np
 import numpy.typing as npt
@@ -74,10 +75,10 @@ class GridMap:
     False
     """
 
-    __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "_known", "_code", "__weakref__")
+    __slots__ = ("_prob", "_resolution", "_origin", "_yaw", "_known", "_code", "_table", "__weakref__")
 
     def __init__(self, prob: npt.ArrayLike, resolution: float, origin: npt.ArrayLike = (0.0, 0.0)) -> None:
-        self._known = self._code = None
+        self._known = self._code = self._table = None
         self._prob = _check_prob(prob)
         self._resolution = _check_resolution(resolution)
         *xy, self._yaw = _check_origin(origin)
@@ -86,8 +87,8 @@ class GridMap:
     @property
     def prob(self) -> np.ndarray:
         """Read-only float64 array (rows, cols) of occupancy probabilities; NaN = unknown."""
-        if self._prob is None:                  # a map made from its trinary code (``_from_code``)
-            prob = trinary_values(self._code)
+        if self._prob is None:                  # a map made from its codes (``_from_code``)
+            prob = trinary_values(self._code) if self._table is None else self._table.take(self._code)
             prob.setflags(write=False)
             self._prob = prob
         return self._prob
@@ -277,33 +278,36 @@ def _trusted(prob, resolution, corner_pose) -> GridMap:
     grid = GridMap.__new__(GridMap)
     prob.setflags(write=False)
     grid._prob = prob
-    grid._known = grid._code = None
+    grid._known = grid._code = grid._table = None
     grid._resolution = float(resolution)
     grid._origin, grid._yaw = (float(corner_pose[0]), float(corner_pose[1])), float(corner_pose[2])
     return grid
 
 
-def _from_code(code: np.ndarray, resolution, corner_pose) -> GridMap:
-    """A trinary map given by its ``trinary_code`` (uint8, read-only from here on), its float64
-    probabilities made only when first read: a byte a cell to keep or send where the map has
-    eight, and what ``trinary_code`` returns for it without a pass over them."""
+def _from_code(code: np.ndarray, resolution, corner_pose, table: Optional[np.ndarray] = None) -> GridMap:
+    """A map given by a code per cell (uint8, read-only from here on), its float64 probabilities
+    made only when first read: a byte a cell to keep or send where the map has eight. The codes
+    are ``trinary_code``'s (``table`` None: what ``grid_code`` returns without a pass over them),
+    or indices into ``table``, the float64 probabilities of the codes, NaN at code 0 only (0 is
+    unknown, as ``UNKNOWN``, and every other code known)."""
     grid = _trusted(np.empty((0, 0)), resolution, corner_pose)
     code.setflags(write=False)
-    grid._prob, grid._code = None, code
+    grid._prob, grid._code, grid._table = None, code, table
     return grid
+
 
 
 def twin(grid: GridMap) -> GridMap:
     """A GridMap of its own over ``grid``'s read-only data (no copy; a map made by ``_from_code``
     stays one)."""
     if grid._code is not None:
-        return _from_code(grid._code, grid.resolution, grid.corner_pose)
+        return _from_code(grid._code, grid.resolution, grid.corner_pose, grid._table)
     return grid._with_trusted(grid.prob)
 
 
 def grid_code(grid: GridMap) -> np.ndarray:
     """``trinary_code(grid.prob)``, without a pass for a map made by ``_from_code``."""
-    return grid._code if grid._code is not None else trinary_code(grid.prob)
+    return grid._code if grid._code is not None and grid._table is None else trinary_code(grid.prob)
 
 
 def _check_prob(prob):

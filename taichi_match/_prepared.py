@@ -13,9 +13,17 @@ import numpy as np
 
 from ._blur import blur, blur_everywhere, wall_transform
 from ._distance import near_weighted_envelope
-from ._envelope import conflict_grid, envelope_profile, envelope_reach, near_conflict_grid, points_array, wall_points
+from ._envelope import (
+    WALL,
+    conflict_grid,
+    envelope_profile,
+    envelope_reach,
+    near_conflict_grid,
+    points_array,
+    wall_points,
+)
 from ._errors import InvalidOptionError
-from ._grid import OCCUPIED, UNKNOWN, GridMap, _trusted, cells, grid_code, trinary_values, twin
+from ._grid import OCCUPIED, UNKNOWN, GridMap, _from_code, cells, grid_code, trinary_values, twin
 from ._kernels import PAD
 from ._pyramid import coarsen, halve_code
 from ._verdict import CONFLICT_CELLS, WallDistance
@@ -59,8 +67,7 @@ class PreparedMap:
         self.blur_growth = float(blur_growth)
         self._squared = self._wall_distances = self._blurred = None
         if blur_kind == "envelope":             # the envelope discrepancy (``_envelope``)
-            unknown = self._prepare_envelope()
-            self.n_known = unknown.size - int(np.count_nonzero(unknown))
+            self.n_known = self._prepare_envelope()
         else:
             grid = self.grid
             # the walls' distance transform, once for the blur and the verdict
@@ -97,35 +104,39 @@ class PreparedMap:
         """The known cells' mask (for "trinary" made anew at each call: not kept)."""
         return self._code != UNKNOWN if self._code is not None else self.frame.known
 
-    def _prepare_envelope(self) -> np.ndarray:
+    def _prepare_envelope(self) -> int:
         """The conflict grid and the walls; for the verdict the walls' distances; returns the
-        unknown cells' mask. With few walls (laser-built maps: 0.1-2 % of the cells) each wall
+        number of known cells. With few walls (laser-built maps: 0.1-2 % of the cells) each wall
         stamps the disc of the envelope's reach around it, with the conflict values, in one launch
         (``near_conflict_grid``): at 1 (trinary maps) its squared distance, kept for the verdict,
         from which the conflict grid is the same bit for bit as from the exact transform; grey
         (coarse levels) its weighted envelope. Otherwise the exact transforms over every cell
         (``_blur``)."""
         frame, code = self.frame, self._code
-        if code is None:
-            self.walls = rows, cols, weights = wall_points(frame)
-            ones = len(rows) > 0 and weights.min() == 1.0
-        else:
+        if code is not None:                         # "trinary": its codes
+            known, prob = code, None
             rows, cols = cells(code == OCCUPIED)
             self.walls = rows, cols, weights = rows, cols, np.ones(len(rows))
-            ones = len(rows) > 0
-        unknown = code == UNKNOWN if code is not None else ~frame.known
+        elif frame._table is not None:               # a map made from codes and their probabilities
+            known, prob = frame._code, frame._table  # (a coarse level of a trinary map): read as such
+            rows, cols = cells((prob >= WALL).take(known))
+            self.walls = rows, cols, weights = rows, cols, prob.take(known[rows, cols])
+        else:
+            known, prob = frame.known, frame.prob
+            self.walls = rows, cols, weights = wall_points(frame)
+        ones = len(rows) > 0 and weights.min() == 1.0
+        n_known = int(np.count_nonzero(known))
         width = self.blur_width / frame.resolution
         # out to the envelope's reach, and beyond the verdict's conflict distance (``_verdict``)
         reach = self._reach = max(envelope_reach(width), int(np.ceil(CONFLICT_CELLS)) + 1) if width > 0 else 0
-        few = width > 0 and 0 < len(rows) * (2 * reach + 1) ** 2 <= STAMP_WORK * unknown.size
+        few = width > 0 and 0 < len(rows) * (2 * reach + 1) ** 2 <= STAMP_WORK * known.size
         ratio = frame.resolution / self.blur_width if width > 0 else 0.0
         self._stamp = few
         if few:
-            self.conflict, self._squared = near_conflict_grid(None if code is not None else frame.prob, unknown,
-                                                              reach, ratio, self.walls, squared=ones)
+            self.conflict, self._squared = near_conflict_grid(known, prob, reach, ratio, self.walls, squared=ones)
         else:
-            self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), unknown)
-        return unknown
+            self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), known == 0)
+        return n_known
 
     def _envelope(self, ones, keep_distances=False):
         """The envelope hi on every cell, for maps not stamped with squared distances: NaN (counts
@@ -265,7 +276,8 @@ class PreparedMap:
             reduce = "line" if self.blur_kind == "envelope" else "mean"
             if self._code is not None:
                 frame = self.frame
-                coarse = _trusted(halve_code(self._code, reduce), frame.resolution * 2, frame.corner_pose)
+                blocks, table = halve_code(self._code, reduce)
+                coarse = _from_code(blocks, frame.resolution * 2, frame.corner_pose, table)
             else:
                 coarse = coarsen(self.grid, reduce=reduce)
             self._coarser = PreparedMap(coarse, self.blur_width * self.blur_growth, self.blur_kind, self.blur_growth)

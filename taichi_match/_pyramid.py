@@ -1,6 +1,6 @@
 """A resolution pyramid: maps coarsened by 2 per level, for coarse-to-fine matching."""
 
-from typing import Literal
+from typing import Literal, Tuple
 
 import numpy as np
 
@@ -53,12 +53,15 @@ def _reduced(total, known, factor, reduce):
     return np.where(known > 0, reduced, np.nan)
 
 
-def halve_code(code: np.ndarray, reduce: Literal["mean", "line"] = "line") -> np.ndarray:
-    """``coarsen``'s float64 probabilities, factor 2, of a map given as ``_grid.trinary_code``: each
-    block's occupied and known cells counted and its value read from ``_BINARY_BLOCKS`` (the same
-    numbers as ``coarsen``). In NumPy, whose loops over bytes are vectorised: a Taichi kernel doing
-    the same in one pass ran scalar, 2.5-3x slower (measured on the mapping loop's front-end
-    targets and scans: 0.56-0.63 -> 0.20-0.25 ms and 0.19-0.21 -> 0.08 ms)."""
+def halve_code(code: np.ndarray, reduce: Literal["mean", "line"] = "line") -> Tuple[np.ndarray, np.ndarray]:
+    """``coarsen``'s map, factor 2, of a map given as ``_grid.trinary_code``, as codes (a map for
+    ``_grid._from_code``): (uint8 codes, their float64 probabilities). A block's code counts its
+    occupied and known cells, ``occupied * 5 + known`` (0: unknown), and the table gives its value
+    (``_BINARY_BLOCKS``: the same numbers as ``coarsen``). In NumPy, whose loops over bytes are
+    vectorised: a Taichi kernel doing the same in one pass ran scalar, 2.5-3x slower (measured on
+    the mapping loop's front-end targets and scans: 0.56-0.63 -> 0.20-0.25 ms and 0.19-0.21 ->
+    0.08 ms). The codes are a byte a block where its probabilities take eight: a coarse level
+    prepared from them (``_prepared``) reads them through the table, and they are never made."""
     code = np.ascontiguousarray(code, dtype=np.uint8)
     h, w = code.shape
     rows, cols = -(-h // 2), -(-w // 2)
@@ -71,10 +74,9 @@ def halve_code(code: np.ndarray, reduce: Literal["mean", "line"] = "line") -> np
     inner -= np.uint8(1)
     inner *= code
     pairs = np.add(weight[0::2], weight[1::2]).view(np.uint16)     # the block's two columns in one number
-    index = pairs & np.uint16(0xFF)
-    pairs >>= np.uint16(8)
-    index += pairs
-    return _BINARY_BLOCKS[reduce].take(index)
+    blocks = np.bitwise_and(pairs, np.uint16(0xFF), dtype=np.uint8, casting="unsafe")
+    np.add(blocks, np.right_shift(pairs, np.uint16(8)), out=blocks, casting="unsafe")
+    return blocks, _BINARY_BLOCKS[reduce]
 
 
 def _block_sums(prob, known):
@@ -98,7 +100,9 @@ def _binary_blocks(reduce):
     """``coarsen``'s value, factor 2, of a block with ``occupied`` occupied and ``known`` known
     cells (of 4) at index ``occupied * 5 + known``."""
     occupied, known = np.divmod(np.arange(25), 5)
-    return _reduced(occupied.astype(np.float64), known, 2, reduce)
+    table = _reduced(occupied.astype(np.float64), known, 2, reduce)
+    table.setflags(write=False)                 # shared by every map made from ``halve_code``'s codes
+    return table
 
 
 _BINARY_BLOCKS = {reduce: _binary_blocks(reduce) for reduce in ("mean", "line")}

@@ -395,7 +395,9 @@ def test_halving_trinary_codes_is_coarsening_their_map_bit_for_bit(shape, reduce
     prob[rng.random(shape) < 0.4] = np.nan
     grid = GridMap(prob, 0.05, (1.0, -2.0, 0.3))
     general = coarsen(grid, reduce=reduce)
-    np.testing.assert_array_equal(halve_code(trinary_code(prob), reduce), general.prob)
+    blocks, table = halve_code(trinary_code(prob), reduce)
+    assert blocks.dtype == np.uint8 and np.all((blocks == 0) == np.isnan(general.prob))     # 0: unknown
+    np.testing.assert_array_equal(table[blocks], general.prob)
     grey = GridMap(np.where(np.isnan(prob), np.nan, rng.random(shape)), 0.05)
     padded = np.full((-(-shape[0] // 2) * 2, -(-shape[1] // 2) * 2), np.nan)
     padded[:shape[0], :shape[1]] = grey.prob
@@ -674,7 +676,7 @@ def test_the_stamped_conflict_grid_equals_the_exact_transforms_on_thin_maps(shap
                                               transform=None if grey else wall_transform(grid)), unknown)
         if grey:
             rows, cols = np.nonzero(prob >= 0.5)
-            got, squared = near_conflict_grid(prob, unknown, reach, 0.5, (rows, cols, prob[rows, cols]))
+            got, squared = near_conflict_grid(~unknown, prob, reach, 0.5, (rows, cols, prob[rows, cols]))
             assert squared is None
             np.testing.assert_allclose(got, exact, rtol=0, atol=1e-6)       # the envelope's two arithmetics
             assert np.array_equal(got < -0.5, exact < -0.5)                   # the same cells unknown
@@ -733,7 +735,7 @@ def _check_stamped_conflict_grid(prob, walls, grey, trinary, reach, ratio):
     unknown = np.isnan(prob)
     rows, cols = np.nonzero(walls)
     profile = envelope_profile(reach, ratio)
-    got, squared = near_conflict_grid(None if trinary else prob, unknown, reach, ratio,
+    got, squared = near_conflict_grid(~unknown, None if trinary else prob, reach, ratio,
                                       (rows, cols, prob[rows, cols]), squared=not grey)
     if grey:
         # the grey envelope by brute force: the brightest wall's weight * profile within reach
@@ -761,9 +763,9 @@ def test_the_stamped_conflict_grid_without_walls_is_the_maps_own():
     prob = np.array([[0.0, np.nan, 0.2], [np.nan, 0.4, 0.0]])
     unknown = np.isnan(prob)
     none = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0))
-    got, squared = near_conflict_grid(None, unknown, 13, 0.5, none, squared=True)
+    got, squared = near_conflict_grid(~unknown, None, 13, 0.5, none, squared=True)
     assert got.tobytes() == conflict_grid(np.zeros(prob.shape), unknown).tobytes() and np.all(squared == 255)
-    got, squared = near_conflict_grid(prob, unknown, 13, 0.5, none)
+    got, squared = near_conflict_grid(~unknown, prob, 13, 0.5, none)
     assert got.tobytes() == conflict_grid(np.nan_to_num(prob), unknown).tobytes() and squared is None
 
 
@@ -808,3 +810,35 @@ def test_coarse_levels_must_come_from_the_same_blur(room_pair):
     other = tm.Matcher(blur=0.2).prepare(a)
     with pytest.raises(ValueError, match="same blur"):
         tm.Matcher().prepare(GridMap(a.prob.copy(), a.resolution, a.origin), coarse_from=other)
+
+
+@pytest.mark.parametrize("reduce", ["mean", "line"])
+@pytest.mark.parametrize("shape", [(90, 130), (7, 300), (41, 1)])
+def test_a_map_of_codes_and_their_probabilities_prepares_as_its_probabilities(reduce, shape, rng):
+    # a coarse level of a trinary map is kept as its block codes and their table (``halve_code``,
+    # ``_grid._from_code``): its walls, known cells and stamped conflict grid are those of the same
+    # map given as probabilities, bit for bit (walls at 1 only, and grey ones)
+    from taichi_match._envelope import near_conflict_grid
+    from taichi_match._grid import _from_code
+
+    for walls_at_one in (False, True):
+        fine = np.where(rng.random((2 * shape[0], 2 * shape[1])) < 0.004, 1.0, 0.0)   # few: stamped
+        fine[0, 0] = 1.0
+        fine[rng.random(fine.shape) < 0.5] = np.nan
+        blocks, table = halve_code(trinary_code(fine), reduce)
+        if walls_at_one:                               # only blocks full of walls, or none
+            table = np.where(table >= 0.5, 1.0, table)
+        coded = PreparedMap(_from_code(blocks, 0.1, (1.0, 2.0, 0.0), table), 0.2, "envelope")
+        plain = PreparedMap(GridMap(table[blocks], 0.1, (1.0, 2.0, 0.0)), 0.2, "envelope")
+        assert coded._stamp == plain._stamp and coded.n_known == plain.n_known
+        assert coded._stamp or shape == (41, 1)                # the stamped path, on the larger maps
+        assert all(np.array_equal(a, b) for a, b in zip(coded.walls, plain.walls))
+        assert coded.conflict.tobytes() == plain.conflict.tobytes()
+        assert (coded._squared is None) == (plain._squared is None)
+        assert (coded._squared is not None) == (walls_at_one and coded._stamp)
+        if coded._squared is not None:
+            assert coded._squared.tobytes() == plain._squared.tobytes()
+        rows, cols = np.nonzero(table[blocks] >= 0.5)
+        got, _ = near_conflict_grid(blocks, table, 13, 0.5, (rows, cols, table[blocks][rows, cols]))
+        want, _ = near_conflict_grid(blocks != 0, table[blocks], 13, 0.5, (rows, cols, table[blocks][rows, cols]))
+        assert got.tobytes() == want.tobytes()
