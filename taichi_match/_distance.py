@@ -20,6 +20,8 @@ its weighted Gaussian, the largest wins). Both are integer or floating-point ext
 whatever the order of the parallel writes.
 """
 
+import functools
+
 import numpy as np
 
 from ._launch import launch, row_spread
@@ -193,6 +195,17 @@ def _taichi_type(dtype):
     return {"uint8": ti.u8, "uint16": ti.u16, "uint32": ti.u32, "float64": ti.f64}[np.dtype(dtype).name]
 
 
+@functools.lru_cache(maxsize=32)
+def _chords(reach: int) -> np.ndarray:
+    """The disc's chord on the row d away, at d + ``reach`` (int32, read-only, made once a reach)."""
+    d = np.arange(-reach, reach + 1)
+    half = np.floor(np.sqrt(reach * reach - d * d)).astype(np.int32)
+    while np.any(half * half + d * d > reach * reach):                    # (sqrt rounding up at squares)
+        half -= (half * half + d * d > reach * reach)
+    half.setflags(write=False)
+    return half
+
+
 def wall_runs(rows, cols, weights, shape, reach, merge_weights: bool = True):
     """The stamp kernels' walls: (rows, starts, ends, weights, first, half) for walls at (``rows``,
     ``cols``) (in any order; ``weights`` None: all 0) on a grid of ``shape``: runs of walls next to
@@ -209,10 +222,7 @@ def wall_runs(rows, cols, weights, shape, reach, merge_weights: bool = True):
         raise ValueError(f"rows and cols must be 1-D of one length and 0 <= reach <= 16384; got {rows.shape}, "
                          f"{cols.shape}, {reach}")
     weights = np.zeros(len(rows)) if weights is None else np.ascontiguousarray(weights, dtype=np.float64)
-    d = np.arange(-reach, reach + 1)
-    half = np.floor(np.sqrt(reach * reach - d * d)).astype(np.int32)     # the disc's chord on row d away
-    while np.any(half * half + d * d > reach * reach):                    # (sqrt rounding up at squares)
-        half -= (half * half + d * d > reach * reach)
+    half = _chords(reach)
     if len(rows) == 0:
         return rows, cols, cols, weights, np.zeros(shape[0] + 1, dtype=np.int32), half
     low = int(cols.min())

@@ -53,6 +53,8 @@ grid (laid out by component: measured 3.5x faster than (M, 4) rows, whose loads 
 vectorise).
 """
 
+import functools
+
 import numpy as np
 
 from ._cost import AffineMap
@@ -148,19 +150,16 @@ def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls,
     out = np.full((h + 2 * PAD, w + 2 * PAD), np.float32(-2.0))  # unknown where no wall reaches
     out[:PAD], out[h + PAD:] = _OFF_MAP, _OFF_MAP                 # the ring off the map
     out[PAD:h + PAD, :PAD], out[PAD:h + PAD, w + PAD:] = _OFF_MAP, _OFF_MAP
-    profile = envelope_profile(reach, ratio)
+    profile, costs, table, monotone = _stamp_tables(int(reach), float(ratio))
     rows, cols, weights = walls
-    monotone = squared or bool(np.all(np.diff(profile) <= 0))
     rows, starts, ends, weights, first, half = wall_runs(rows, cols, None if squared else weights, (h, w), reach,
-                                                         monotone)
+                                                         squared or monotone)
     p = np.zeros(1) if prob is None else np.ascontiguousarray(prob, dtype=np.float64).reshape(-1)
     coded = prob is not None and np.ndim(prob) == 1             # a table of the codes' probabilities
     known = np.ascontiguousarray(known).view(np.uint8).reshape(-1)
     runs = (rows, starts, ends, weights, first, half, row_spread(h), known, p)
     if not squared:
         if h and w:
-            offsets = np.arange(reach + 1)                          # the profile by row and column offset
-            table = profile[np.minimum(offsets[:, None] ** 2 + offsets ** 2, reach * reach + 1)]
             with kernel_lock():
                 envelope = _SCRATCH.get("envelope", (h * w,), np.float64)
                 launch(kernels(_build_conflict)[1], (*runs, table, envelope, out.reshape(-1)), coded)
@@ -168,14 +167,28 @@ def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls,
     dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
     distances = np.empty((h, w), dtype=dtype)
     distances.fill(np.iinfo(dtype).max)
-    costs = np.empty((2, len(profile)), dtype=np.float32)        # by squared distance: known, unknown cells
-    costs[0] = 1.0 - profile                                      # 1 - hi in float64, rounded once
-    np.subtract(np.float32(-1.0), costs[0], out=costs[1])
     if h and w:
         with kernel_lock():
             launch(kernels(_build_conflict)[0], (*runs, profile, costs, distances.reshape(-1), out.reshape(-1)),
                    (prob is not None, coded, _taichi_type(dtype)))
     return out, distances
+
+
+@functools.lru_cache(maxsize=32)
+def _stamp_tables(reach: int, ratio: float):
+    """``near_conflict_grid``'s tables for a reach and ratio, made once (read-only): the profile by
+    squared distance (``envelope_profile``); the costs by squared distance, of a known and of an
+    unknown cell (float32, 1 - hi rounded once from float64); the profile by row and column offset
+    (grey walls); and whether the profile never increases."""
+    profile = envelope_profile(reach, ratio)
+    costs = np.empty((2, len(profile)), dtype=np.float32)
+    costs[0] = 1.0 - profile
+    np.subtract(np.float32(-1.0), costs[0], out=costs[1])
+    offsets = np.arange(reach + 1)
+    table = profile[np.minimum(offsets[:, None] ** 2 + offsets ** 2, reach * reach + 1)]
+    for array in (profile, costs, table):
+        array.setflags(write=False)
+    return profile, costs, table, bool(np.all(np.diff(profile) <= 0))
 
 
 def _build_conflict(ti):
