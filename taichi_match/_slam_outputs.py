@@ -6,7 +6,7 @@ import os
 
 import numpy as np
 
-from ._errors import InvalidOptionError
+from ._errors import InvalidOptionError, SlamRunError
 
 __all__ = ["OUTPUTS", "output_paths", "write_outputs", "report", "loop_summary", "scan_times"]
 
@@ -17,19 +17,35 @@ def output_paths(folder, *, force: bool = False, keep=()) -> dict:
     """The paths ``write_outputs`` writes in ``folder``, checked before any work: an existing output
     is an error without ``force``, and always when it is a folder or one of the files in ``keep``
     (the inputs: a log or a reference never becomes an output). Returns {name: Path}."""
+    import tempfile
     from pathlib import Path
 
+    if not isinstance(folder, (str, os.PathLike)):
+        raise InvalidOptionError(f"the output folder must be a path (str or os.PathLike); got {type(folder).__name__}")
     if not str(folder).strip():
         raise InvalidOptionError("the output folder must be named (an empty path would write into the current "
                                  "folder)")
-    folder = Path(folder)
+    name = os.fsdecode(folder)                  # bytes that are not UTF-8 come back as lone surrogates
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        raise InvalidOptionError(f"the output folder's name must be valid UTF-8 (gtsam writes graph.g2o through a "
+                                 f"UTF-8 path); got {folder!r}") from None
+    folder = Path(name)
     if folder.exists() and not folder.is_dir():
         raise FileExistsError(f"{folder} exists and is not a folder")
     existing = folder.absolute()
     while not existing.exists() and existing != existing.parent:      # the folder, or where it would go
         existing = existing.parent
+    if not existing.is_dir():
+        raise NotADirectoryError(f"cannot make the output folder {folder}: {existing} is not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):                      # (read-only file systems too)
         raise PermissionError(f"cannot write into {existing}: the outputs would be lost after the run")
+    try:                                # what access() cannot tell (/proc, some mounts): a folder made and removed
+        os.rmdir(tempfile.mkdtemp(prefix=".slam-probe-", dir=existing))
+    except OSError as exc:
+        raise PermissionError(f"cannot write into {existing} ({exc.strerror}): the outputs would be lost after "
+                              f"the run") from None
     paths = {name: folder / file for name, file in zip(("trajectory", "map", "image", "graph", "report"), OUTPUTS)}
     kept = [Path(k).resolve() for k in keep if k]
     for path in paths.values():
@@ -54,25 +70,43 @@ def write_outputs(result, folder, *, source: str = "", force: bool = False, keep
 
     from . import io
     from .logs import write_tum
-    from .slam import _gtsam
+    from .slam import SlamResult, _gtsam
 
+    if not isinstance(result, SlamResult):
+        raise InvalidOptionError(f"result must be a taichi_match.slam.SlamResult; got {type(result).__name__}")
     gtsam = _gtsam()
     paths = output_paths(folder, force=force, keep=keep)
-    folder = Path(folder)
+    folder = paths["report"].parent
     folder.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".slam-", dir=folder))
-    try:
-        staged = {name: staging / path.name for name, path in paths.items()}
-        io.write_ros_map(result.map, staged["map"])
-        write_tum(staged["trajectory"], result.timestamps, result.poses)
-        gtsam.writeG2o(_plain_graph(gtsam, result.graph), result.values, str(staged["graph"]))
-        staged["report"].write_text(report(result, source))
-        with io._signals_held():
-            for name, path in paths.items():
-                staged[name].replace(path)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    with io._signals_raised():                    # SIGTERM, SIGHUP: the temporary folder removed first
+        staging = Path(tempfile.mkdtemp(prefix=".slam-", dir=folder))
+        try:
+            staged = {name: staging / path.name for name, path in paths.items()}
+            io.write_ros_map(result.map, staged["map"])
+            write_tum(staged["trajectory"], result.timestamps, result.poses)
+            _write_g2o(gtsam, result, staged["graph"])
+            # (a log's name that is not UTF-8 is written escaped)
+            staged["report"].write_text(report(result, source), encoding="utf-8", errors="backslashreplace")
+            with io._signals_held():
+                for name, path in paths.items():
+                    staged[name].replace(path)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
     return paths
+
+
+def _write_g2o(gtsam, result, path):
+    """``graph.g2o`` by gtsam's writer, checked: it reports no error (a full disk or a file size
+    limit cut the file short, silently), so the file must hold a line per node and per edge, each
+    ended, and only finite numbers."""
+    graph = _plain_graph(gtsam, result.graph)
+    gtsam.writeG2o(graph, result.values, str(path))
+    text = path.read_text(encoding="utf-8", errors="replace")
+    lines = result.values.size() + graph.size()
+    if text.count("\n") != lines or not text.endswith("\n"):
+        raise OSError(f"gtsam wrote {path.name} in part ({text.count(chr(10))} of {lines} lines): is the disk full?")
+    if any(word in ("nan", "-nan", "inf", "-inf") for word in text.lower().split()):
+        raise SlamRunError(f"{path.name} would hold non-finite numbers: a covariance overflowed (check the options)")
 
 
 def _plain_graph(gtsam, graph):

@@ -119,6 +119,15 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
     if len(odo) < 2 or not np.all(np.isfinite(odo)):
         raise LogFormatError(f"{path}: fewer than two finite Odometry messages "
                              "(a log without odometry cannot be mapped)")
+    repeated = odo[1:, 0] == odo[:-1, 0]              # one stamp twice: the same pose kept once, else an error
+    if np.any(repeated & np.any(odo[1:, 1:] != odo[:-1, 1:], axis=1)):
+        stamp = float(odo[1:, 0][repeated][0])
+        raise LogFormatError(f"{path}: two Odometry messages stamped {stamp!r} s with different poses: the poses "
+                             f"between them cannot be interpolated")
+    odo = odo[np.r_[True, ~repeated]]
+    if len(odo) < 2:
+        raise LogFormatError(f"{path}: fewer than two Odometry messages at different stamps "
+                             "(a log without odometry cannot be mapped)")
     heading = np.unwrap(odo[:, 3])
     out, left_out = [], 0
     for msg in sorted(scans, key=lambda m: _stamp(m.header)):

@@ -508,13 +508,22 @@ def _progress(label, total, enabled, unit="scan"):
         from tqdm import tqdm
     except ImportError:
         return None
-    bar = tqdm(total=total, desc=label, unit=unit, file=sys.stderr)
+    try:
+        bar = tqdm(total=total, desc=label, unit=unit, file=sys.stderr)
+    except OSError:                      # stderr closed already
+        return None
+    broken = []
 
     def update(done, _total):
-        bar.total = _total
-        bar.update(done - bar.n)
-        if done >= _total:
-            bar.close()
+        if broken:
+            return
+        try:
+            bar.total = _total
+            bar.update(done - bar.n)
+            if done >= _total:
+                bar.close()
+        except OSError:                  # stderr closed (a pipe whose reader left): the work goes on without it
+            broken.append(True)
     return update
 
 

@@ -444,6 +444,40 @@ def _signals_held(signums=("SIGINT", "SIGTERM", "SIGHUP")):
             os.kill(os.getpid(), caught[0])
 
 
+class _Signalled(BaseException):
+    """A terminating signal raised as an exception, so that cleanups run (``_signals_raised``)."""
+
+
+@contextlib.contextmanager
+def _signals_raised(signums=("SIGTERM", "SIGHUP")):
+    """While the block runs, these signals (where they would end the process: default handler)
+    raise an exception instead, so that its ``finally`` clauses run (temporary files removed);
+    then the signal is delivered as it would have been. Main thread only, as ``_signals_held``."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def raised(signum, frame):
+        raise _Signalled(signum)
+
+    old = {}
+    for name in signums:
+        sig = getattr(signal, name, None)
+        if sig is not None and signal.getsignal(sig) is signal.SIG_DFL:
+            old[sig] = signal.signal(sig, raised)
+    try:
+        yield
+    except _Signalled as exc:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        old = {}
+        os.kill(os.getpid(), exc.args[0])            # the default: the process ends here
+        raise SystemExit(128 + exc.args[0]) from None
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 # ---------------------------------------------------------------------------------------------
 # Images (Pillow): the formats map_server's SDL_image reads
 

@@ -139,9 +139,23 @@ def _flaser(words, where):
     if not 2 + n + 7 <= len(words) <= 2 + n + 9:
         raise LogFormatError(f"{where}: FLASER with {n} beams has {n + 7} to {n + 9} fields after n; "
                              f"got {len(words) - 2}")
+    if len(words) > 2 + n + 7 and _is_number(words[2 + n + 7]):
+        # the host's name where a number stands: the fields are off by one or two, and the beam
+        # count is wrong (the last beams would be read as the pose, the pose as the timestamp)
+        raise LogFormatError(f"{where}: FLASER with {n} beams: field {n + 8} after n should be the host's name, "
+                             f"but it is the number {words[2 + n + 7]!r}: the number of beams disagrees with the "
+                             f"line")
     ranges = _floats(words[2:2 + n], where)
     x, y, theta, _, _, _, timestamp = _floats(words[2 + n:2 + n + 7], where)
     return timestamp, ranges, flaser_angles(n), np.array([x, y, theta]), None
+
+
+def _is_number(word) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
 
 
 def flaser_angles(n):
@@ -233,6 +247,9 @@ def read_carmen(path, *, max_range=None) -> LaserLog:
     if not raw:
         raise LogFormatError(f"{path}: no FLASER or ROBOTLASER1 line")
     inferred = _saturation(raw)
+    if max_range is None and not inferred > 0 and any(own is None for *_, own in raw):
+        raise LogFormatError(f"{path}: no usable beam: every FLASER range is NaN, infinite, zero or negative (and "
+                             f"the sensor's maximum range cannot be inferred from them)")
     scans = []
     for timestamp, ranges, angles, pose, own_max in raw:
         limit = max_range if max_range is not None else (own_max if own_max is not None else inferred)
@@ -285,7 +302,9 @@ def read_tum(path):
 
 
 def write_tum(path, timestamps, poses):
-    """Write planar poses (N, 3) with their timestamps (N,) as a TUM trajectory (z = 0)."""
+    """Write planar poses (N, 3) with their timestamps (N,) as a TUM trajectory (z = 0). A timestamp
+    is written with 6 decimals, or in full where those would change it (scans less than a
+    microsecond apart kept apart)."""
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
     timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
     if len(timestamps) != len(poses):
@@ -293,4 +312,7 @@ def write_tum(path, timestamps, poses):
     with open(path, "w", encoding="utf-8") as f:
         f.write("# timestamp x y z qx qy qz qw\n")
         for t, (x, y, yaw) in zip(timestamps, poses):
-            f.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 {math.sin(yaw / 2):.9f} {math.cos(yaw / 2):.9f}\n")
+            stamp = f"{t:.6f}"
+            if float(stamp) != t:
+                stamp = repr(float(t))
+            f.write(f"{stamp} {x:.6f} {y:.6f} 0 0 0 {math.sin(yaw / 2):.9f} {math.cos(yaw / 2):.9f}\n")

@@ -126,6 +126,13 @@ MIN_CELLS_PER_RAY = 20           # max_ray_length / resolution, at least
 # 4096)^2 = 67 M cells of int32 counts (half a GB) and their grids (at 20 m rays and 0.002 m cells a
 # run held 9.8 GB before the counts' own limit refused it)
 MAX_CELLS_PER_RAY = 4096
+# The factors that scale a covariance (``robust_kernel``, ``front_end_inflation``,
+# ``gate_inflation``) lie in this range, and the odometry's standard deviations at most ODOMETRY_SD_MAX,
+# its floors at least ODOMETRY_SD_MIN: 1e308 or 1e-308 passed every "finite and > 0" check and wrote
+# NaN and inf information matrices into graph.g2o (a red-team pass, 2026-12-07)
+SCALE_RANGE = (1e-6, 1e6)
+ODOMETRY_SD_MAX = 1e3
+ODOMETRY_SD_MIN = 1e-9
 ODOMETRY_GATE = 16.27            # chi-square, 3 degrees of freedom, 99.9 %
 SCAN_MAX_UNCERTAINTY_M = 0.15
 NEIGHBOUR_PATH = 15.0            # metres of travel: loop closures this close at both ends vote
@@ -446,11 +453,20 @@ class SlamOptions:
                                      "target_refresh 1 and share_coarse False")
         if not (isinstance(self.submap_scans, int) and self.submap_scans >= 4 and self.submap_scans % 2 == 0):
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {shown(self.submap_scans)}")
-        for name in ("resolution", "max_ray_length", "robust_kernel", "front_end_inflation", "gate_inflation"):
+        for name in ("resolution", "max_ray_length"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                    and value > 0):
+            if not (_number(value) and math.isfinite(value) and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {shown(value)}")
+        low, high = SCALE_RANGE
+        for name in ("robust_kernel", "front_end_inflation", "gate_inflation"):
+            value = getattr(self, name)
+            if not (_number(value) and low <= value <= high):
+                raise InvalidOptionError(f"{name} must be a number in [{low:g}, {high:g}] (it scales a covariance); "
+                                         f"got {shown(value)}")
+        for name in ("matcher", "scan_matcher"):
+            if not isinstance(getattr(self, name), MatchOptions):
+                raise InvalidOptionError(f"{name} must be a taichi_match.MatchOptions; got "
+                                         f"{type(getattr(self, name)).__name__}")
         if self.max_ray_length / self.resolution > MAX_CELLS_PER_RAY:
             raise InvalidOptionError(f"max_ray_length / resolution must be at most {MAX_CELLS_PER_RAY} (a submap's "
                                      f"canvas spans twice that many cells a side); got "
@@ -470,8 +486,8 @@ class SlamOptions:
         if not (isinstance(self.workers, int) and not isinstance(self.workers, bool)
                 and 0 <= self.workers <= MAX_WORKERS):
             raise InvalidOptionError(f"workers must be an integer in 0..{MAX_WORKERS}; got {shown(self.workers)}")
-        if self.loop_ties is not None and not (isinstance(self.loop_ties, (int, float))
-                                               and math.isfinite(self.loop_ties) and self.loop_ties >= 0):
+        if self.loop_ties is not None and not (_number(self.loop_ties) and math.isfinite(self.loop_ties)
+                                               and self.loop_ties >= 0):
             raise InvalidOptionError(f"loop_ties must be None or a finite number >= 0; got {shown(self.loop_ties)}")
         if self.solver not in SOLVERS:
             raise InvalidOptionError(f"solver must be one of {SOLVERS}; got {shown(self.solver)}")
@@ -480,13 +496,17 @@ class SlamOptions:
         if self.loop_ties is not None and self.workers:
             raise InvalidOptionError("loop_ties decides each candidate on the closures judged before it: it needs "
                                      "workers 0")
-        if self.loop_search is not None and not (isinstance(self.loop_search, (int, float))
-                                                 and math.isfinite(self.loop_search) and self.loop_search >= 0):
+        if self.loop_search is not None and not (_number(self.loop_search) and math.isfinite(self.loop_search)
+                                                 and self.loop_search >= 0):
             raise InvalidOptionError(f"loop_search must be None or a finite number >= 0; got {shown(self.loop_search)}")
-        sd = np.asarray(self.odometry_sd, dtype=np.float64)
-        if sd.shape != (5,) or not np.all(np.isfinite(sd)) or np.any(sd < 0) or sd[3] <= 0 or sd[4] <= 0:
-            raise InvalidOptionError(f"odometry_sd must be 5 finite numbers >= 0, the floors > 0; "
-                                     f"got {shown(self.odometry_sd)}")
+        try:
+            sd = np.asarray(self.odometry_sd, dtype=np.float64)
+        except (TypeError, ValueError):
+            sd = np.full(0, np.nan)
+        if (sd.shape != (5,) or isinstance(self.odometry_sd, (str, bytes)) or not np.all(np.isfinite(sd))
+                or np.any(sd < 0) or np.any(sd > ODOMETRY_SD_MAX) or np.any(sd[3:] < ODOMETRY_SD_MIN)):
+            raise InvalidOptionError(f"odometry_sd must be 5 numbers in [0, {ODOMETRY_SD_MAX:g}], the last two (the "
+                                     f"floors) at least {ODOMETRY_SD_MIN:g}; got {shown(self.odometry_sd)}")
 
 
 @dataclass
@@ -635,6 +655,11 @@ class _Mapping:
                 setattr(self, name, new)
 
 
+def _number(value) -> bool:
+    """Whether ``value`` is a real number (an int or a float, NumPy's too; not a bool)."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
 def _checked_scan(scan) -> Scan:
     """A copy of ``scan`` that ``Slam.add`` can map and keep (float64 arrays of its own, read-only:
     a driver may reuse its buffers), else InvalidOptionError saying why. Poses beyond the CARMEN
@@ -703,6 +728,12 @@ class Slam:
 
     def __init__(self, options: SlamOptions = None, **overrides):
         options = options if options is not None else SlamOptions()
+        if not isinstance(options, SlamOptions):
+            raise InvalidOptionError(f"options must be a taichi_match.slam.SlamOptions; got {type(options).__name__}")
+        unknown = sorted(set(overrides) - set(SlamOptions.__dataclass_fields__))
+        if unknown:
+            raise InvalidOptionError(f"unknown SlamOptions field(s) {', '.join(unknown)}; the fields are "
+                                     f"{', '.join(SlamOptions.__dataclass_fields__)}")
         self.options = replace(options, **overrides) if overrides else options
         self._matcher = Matcher(self.options.matcher)
         self._scan_matcher = Matcher(self.options.scan_matcher)

@@ -174,3 +174,28 @@ def test_live_laserscans_feed_the_mapping_loop(run):
     msg.angle_increment = 0.0
     with pytest.raises(LogFormatError, match="angle_increment"):
         scan_from_laserscan(msg, sent.pose)
+
+
+def test_odometry_stamped_twice(run, tmp_path):
+    # two Odometry messages with one stamp: the same pose is one message (read as without the copy),
+    # two poses cannot be interpolated between (np.interp needs increasing times: silently wrong)
+    import dataclasses
+
+    from rosbags.rosbag2 import Writer
+
+    def bag(path, second):
+        with Writer(path, version=9) as writer:
+            c_scan = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=STORE)
+            c_odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=STORE)
+            for t, p in [(0.0, (0.0, 0.0, 0.0)), (1.0, (1.0, 0.0, 0.0)), (1.0, second), (2.0, (2.0, 0.0, 0.0))]:
+                writer.write(c_odom, int(t * 1e9), STORE.serialize_cdr(odom(t, *p), "nav_msgs/msg/Odometry"))
+            for t in (0.5, 1.5):                        # (scan_msg stamps a scan 0.25 s after its own time)
+                msg = scan_msg(dataclasses.replace(run.log.scans[0], timestamp=t - 0.25))
+                writer.write(c_scan, int(t * 1e9), STORE.serialize_cdr(msg, "sensor_msgs/msg/LaserScan"))
+
+    bag(tmp_path / "copy", (1.0, 0.0, 0.0))
+    log, _ = read_rosbag(tmp_path / "copy")
+    np.testing.assert_allclose([s.pose[0] for s in log.scans], [0.5, 1.5], atol=1e-12)
+    bag(tmp_path / "two", (1.3, 0.0, 0.0))
+    with pytest.raises(LogFormatError, match="stamped 1.0 s with different poses"):
+        read_rosbag(tmp_path / "two")

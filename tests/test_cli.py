@@ -380,3 +380,28 @@ def test_align_many_refuses_to_overwrite(pair, tmp_path, capsys):
     assert main(["align-many", str(pairs), "--workers", "0"]) == 2
     assert main(["align-many", str(pairs), "--workers", "1000"]) == 2
     assert "workers" in capsys.readouterr().err
+
+
+def test_a_progress_bar_whose_stderr_closed_lets_the_work_go_on(monkeypatch):
+    # `taichi-match slam ... --progress 2>&1 | head -c 10`: the bar's writes fail once the reader has
+    # left, and the run lost its outputs with them
+    pytest.importorskip("tqdm")
+    from taichi_match import cli
+
+    class Closing:
+        closed = False
+
+        def write(self, text):
+            if self.closed:
+                raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            self.write("")
+
+    stream = Closing()
+    monkeypatch.setattr(cli.sys, "stderr", stream)
+    bar = cli._progress("slam", 3, True)
+    stream.closed = True                               # the reader leaves part-way
+    for done in (1, 2, 3):
+        bar(done, 3)                                   # no error
+    assert cli._progress("slam", 3, True) is None      # closed before the bar: no bar

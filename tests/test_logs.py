@@ -276,3 +276,36 @@ def test_shared_logs_have_one_reference_pose_per_scan():
         max_range = max(float(np.nanmax(s.ranges)) for s in log.scans)
         assert all(s.max_range == max_range for s in log.scans), name
         assert len(log.odometry) == len(log), name
+
+
+def test_a_beam_count_that_disagrees_with_the_line_is_refused(tmp_path):
+    # a FLASER line one beam longer than its count says, without host and logger timestamp: the last
+    # beam would be read as x, x as y, y as theta and the odometry's heading as the timestamp; the
+    # number where the host's name stands gives it away
+    ranges = [1.0, 2.0, 3.0]
+    line = "FLASER 2 " + " ".join(str(v) for v in [*ranges, 0.5, 0.6, 0.1, 9.0, 9.0, 9.0, 10.0])
+    with pytest.raises(LogFormatError, match="host's name"):
+        read_carmen(write(tmp_path / "shifted.log", [line]))
+    # the same fields with the right count and a host's name are read as written
+    log = read_carmen(write(tmp_path / "right.log", [flaser(ranges, (0.5, 0.6, 0.1), 10.0)]))
+    np.testing.assert_array_equal(log.scans[0].ranges, ranges)
+    np.testing.assert_array_equal(log.scans[0].pose, (0.5, 0.6, 0.1))
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "0.0", "-1.0"])
+def test_a_log_without_a_usable_range_says_so(tmp_path, value):
+    lines = [flaser([value] * 4, (0.1 * k, 0.0, 0.0), 10.0 + k) for k in range(3)]
+    with pytest.raises(LogFormatError, match="no usable beam"):
+        read_carmen(write(tmp_path / "none.log", lines))
+
+
+def test_tum_keeps_timestamps_closer_than_a_microsecond_apart(tmp_path):
+    # six decimals where they hold the timestamp (the usual case, written as before); in full where
+    # they would merge scans 10 ns apart into one stamp
+    timestamps = np.array([1000.0, 1000.00000001, 1000.00000002, 1000.5])
+    poses = np.zeros((4, 3))
+    write_tum(tmp_path / "t.tum", timestamps, poses)
+    lines = (tmp_path / "t.tum").read_text().splitlines()
+    assert lines[1].startswith("1000.000000 ") and lines[4].startswith("1000.500000 ")
+    back, _ = read_tum(tmp_path / "t.tum")
+    np.testing.assert_array_equal(back, timestamps)

@@ -3,6 +3,9 @@ and the trajectory metrics against evo."""
 
 import dataclasses
 import math
+import os
+import signal
+import subprocess
 import sys
 
 import numpy as np
@@ -1167,7 +1170,80 @@ def test_gate_inflation_widens_the_odometry_gate(short_run):
     """The gate takes ``gate_inflation`` times the match's covariance: made huge, every match the
     verdict accepted passes it (an edge for each); at the default none passes it that the verdict
     refused."""
-    wide = Slam(gate_inflation=1e9).run(short_run.log)
+    wide = Slam(gate_inflation=1e6).run(short_run.log)
     assert all(record["edge"] == record["accepted"] for record in wide.scans)
     default = Slam().run(short_run.log)
     assert all(record["accepted"] or not record["edge"] for record in default.scans)
+
+
+@pytest.mark.parametrize("overrides", [
+    dict(front_end_inflation=1e308), dict(front_end_inflation=1e-308), dict(gate_inflation=float("nan")),
+    dict(robust_kernel=1e9), dict(odometry_sd=(1e155, 0, 0, 1e-3, 1e-3)), dict(odometry_sd=(0, 0, 0, 1e-320, 1e-3)),
+    dict(odometry_sd="abcde"), dict(odometry_sd=(0.1, 0.1)), dict(scan_matcher="x"), dict(matcher=None),
+    dict(loop_ties=True), dict(loop_search=True), dict(bogus=1)])
+def test_options_that_would_overflow_the_graph_or_mean_nothing_are_refused(overrides):
+    # a red-team pass (2026-12-07): 1e308 and 1e-308 passed "finite and > 0" and wrote NaN and inf
+    # information matrices into graph.g2o; an odometry sd of 1e155 overflowed when squared; the rest
+    # escaped as TypeError, ValueError or OverflowError
+    with pytest.raises(InvalidOptionError):
+        Slam(**overrides)
+    with pytest.raises(InvalidOptionError):
+        Slam("not options")
+
+
+def test_graph_g2o_cut_short_is_an_error_and_the_old_outputs_stay(short_run, tmp_path, monkeypatch):
+    # gtsam's writer reports no error: a full disk or a file size limit cut graph.g2o short and the
+    # run ended well; now the file is checked (a line per node and edge) before anything is moved
+    result = Slam().run(short_run.log)
+    paths = write_outputs(result, tmp_path / "out")
+    before = {name: path.read_bytes() for name, path in paths.items()}
+    writer = gtsam.writeG2o
+
+    def cut(graph, values, name):
+        writer(graph, values, name)
+        with open(name, "r+b") as f:
+            f.truncate(f.seek(0, 2) // 2)
+
+    monkeypatch.setattr(gtsam, "writeG2o", cut)
+    with pytest.raises(OSError, match="in part"):
+        write_outputs(result, tmp_path / "out", force=True)
+    assert {name: path.read_bytes() for name, path in paths.items()} == before
+    assert not [p for p in (tmp_path / "out").iterdir() if p.name.startswith(".slam-")]
+
+
+def test_output_folders_refused_before_any_work(short_run, tmp_path):
+    from taichi_match._slam_outputs import output_paths
+
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(NotADirectoryError):
+        output_paths(tmp_path / "file" / "sub")                   # its parent is a file
+    with pytest.raises(InvalidOptionError, match="UTF-8"):
+        output_paths(os.fsdecode(bytes(tmp_path) + b"/out\xffdir"))   # gtsam's writer takes UTF-8 paths only
+    for folder in (None, 5):
+        with pytest.raises(InvalidOptionError):
+            output_paths(folder)
+    with pytest.raises(InvalidOptionError):
+        write_outputs(None, tmp_path / "out")
+
+
+def test_a_log_name_that_is_not_utf8_is_written_escaped(short_run, tmp_path):
+    result = Slam().run(short_run.log)
+    paths = write_outputs(result, tmp_path / "out", source=os.fsdecode(b"runs/bad\xffname.log"))
+    assert "bad\\udcffname.log" in paths["report"].read_text(encoding="utf-8")
+
+
+def test_a_terminating_signal_while_the_outputs_are_staged_removes_the_staging(tmp_path):
+    # SIGTERM's default ends the process at once: the temporary folder stayed behind. Within
+    # ``_signals_raised`` it is an exception, the cleanups run, then the signal ends the process
+    script = ("import os, signal, pathlib\n"
+              "from taichi_match.io import _signals_raised\n"
+              f"marker = pathlib.Path({str(tmp_path / 'cleaned')!r})\n"
+              "with _signals_raised():\n"
+              "    try:\n"
+              "        os.kill(os.getpid(), signal.SIGTERM)\n"
+              "        signal.pause()\n"
+              "    finally:\n"
+              "        marker.write_text('yes')\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=60)
+    assert done.returncode == -signal.SIGTERM and (tmp_path / "cleaned").read_text() == "yes"
+    assert b"Traceback" not in done.stderr
