@@ -436,9 +436,11 @@ def _slam(args):
               f"(odometry {odometry['rpe_m']:.3f} m {odometry['rpe_deg']:.2f} deg)")
     for name in ("trajectory", "map", "image", "graph", "report"):
         print(f"{name:10s} {paths[name]}")
-    if accepted == 0:
-        print("taichi-match: no scan match was accepted: the trajectory is the odometry's (see report.md; "
-              "--resolution and --max-ray set what a scan can show)", file=sys.stderr)
+    if accepted == 0 or accepted < tried / 2:
+        what = ("no scan match was accepted: the trajectory is the odometry's" if accepted == 0 else
+                f"only {accepted} of {tried} scan matches were accepted: the trajectory is mostly the odometry's")
+        print(f"taichi-match: {what} (see report.md; --resolution and --max-ray set what a scan can show; scans "
+              f"that do not overlap their predecessors, as from a wrong beam order, match nothing)", file=sys.stderr)
         return EXIT_NOT_ACCEPTED
     return EXIT_OK
 
@@ -664,8 +666,9 @@ def main(argv=None):
     demo_slam.add_argument("--progress", action="store_true", help="show the progress bar even when not on a terminal")
     demo_slam.set_defaults(func=_demo_slam)
     slam = sub.add_parser("slam", help="map a laser log: corrected trajectory, map, pose graph and report "
-                                       "(needs gtsam: pip install 'taichi-match[slam]'; exit 0: done, 1: no scan "
-                                       "match accepted, the trajectory is the odometry's, 2: bad input)")
+                                       "(needs gtsam: pip install 'taichi-match[slam]'; exit 0: done, 1: fewer "
+                                       "than half the scan matches accepted, the trajectory mostly the odometry's, "
+                                       "2: bad input)")
     slam.add_argument("log", help="CARMEN log (.log, .clf, gzipped or not), or a ROS 1 (.bag) or ROS 2 bag "
                                    "(folder, .db3, .mcap) with sensor_msgs/LaserScan and nav_msgs/Odometry")
     slam.add_argument("--scan-topic", help="the LaserScan topic of a bag that has several")

@@ -783,6 +783,19 @@ def test_cli_exits_1_when_no_scan_match_is_accepted(short_run, tmp_path, capsys)
     assert (tmp_path / "out" / "trajectory.tum").exists()
 
 
+def test_cli_exits_1_when_most_scans_match_nothing(short_run, tmp_path, capsys):
+    # each scan's beams in reverse order (a mirrored laser): the scans no longer overlap their
+    # submaps, a few matches at most are accepted, and the run exited 0 with the odometry's trajectory
+    flipped = LaserLog(tuple(dataclasses.replace(s, ranges=s.ranges[::-1].copy()) for s in short_run.log.scans),
+                       short_run.log.odometry)
+    log_path = tmp_path / "flipped.log"
+    write_carmen(log_path, flipped)
+    assert main(["slam", str(log_path), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err
+    assert "scan match" in err and "odometry's" in err
+    assert (tmp_path / "out" / "trajectory.tum").exists()
+
+
 def test_timestamps_must_increase(short_run):
     scans = list(short_run.log.scans)
     scans[3], scans[4] = scans[4], scans[3]
