@@ -668,8 +668,7 @@ def main(argv=None):
     slam = sub.add_parser("slam", help="map a laser log: corrected trajectory, map, pose graph and report "
                                        "(needs gtsam: pip install 'taichi-match[slam]'; exit 0: done, 1: fewer "
                                        "than a quarter of the scan matches accepted, the trajectory mostly the "
-                                       "odometry's, "
-                                       "2: bad input)")
+                                       "odometry's, 2: bad input)")
     slam.add_argument("log", help="CARMEN log (.log, .clf, gzipped or not), or a ROS 1 (.bag) or ROS 2 bag "
                                    "(folder, .db3, .mcap) with sensor_msgs/LaserScan and nav_msgs/Odometry")
     slam.add_argument("--scan-topic", help="the LaserScan topic of a bag that has several")

@@ -455,12 +455,12 @@ class SlamOptions:
             raise InvalidOptionError(f"submap_scans must be an even integer >= 4; got {shown(self.submap_scans)}")
         for name in ("resolution", "max_ray_length"):
             value = getattr(self, name)
-            if not (_number(value) and math.isfinite(value) and value > 0):
+            if not (_real(value) is not None and math.isfinite(value) and value > 0):
                 raise InvalidOptionError(f"{name} must be a finite number > 0; got {shown(value)}")
         low, high = SCALE_RANGE
         for name in ("robust_kernel", "front_end_inflation", "gate_inflation"):
             value = getattr(self, name)
-            if not (_number(value) and low <= value <= high):
+            if not (_real(value) is not None and low <= value <= high):
                 raise InvalidOptionError(f"{name} must be a number in [{low:g}, {high:g}] (it scales a covariance); "
                                          f"got {shown(value)}")
         for name in ("matcher", "scan_matcher"):
@@ -477,8 +477,7 @@ class SlamOptions:
                                      f"{shown(self.max_ray_length)} m / {shown(self.resolution)} m")
         for name in ("loop_radius", "loop_growth", "free_margin"):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                    and value >= 0):
+            if not (_real(value) is not None and math.isfinite(value) and value >= 0):
                 raise InvalidOptionError(f"{name} must be a finite number >= 0; got {shown(value)}")
         if self.free_margin >= self.max_ray_length:
             raise InvalidOptionError(f"free_margin must be shorter than max_ray_length; got {shown(self.free_margin)} "
@@ -486,7 +485,7 @@ class SlamOptions:
         if not (isinstance(self.workers, int) and not isinstance(self.workers, bool)
                 and 0 <= self.workers <= MAX_WORKERS):
             raise InvalidOptionError(f"workers must be an integer in 0..{MAX_WORKERS}; got {shown(self.workers)}")
-        if self.loop_ties is not None and not (_number(self.loop_ties) and math.isfinite(self.loop_ties)
+        if self.loop_ties is not None and not (_real(self.loop_ties) is not None and math.isfinite(self.loop_ties)
                                                and self.loop_ties >= 0):
             raise InvalidOptionError(f"loop_ties must be None or a finite number >= 0; got {shown(self.loop_ties)}")
         if self.solver not in SOLVERS:
@@ -496,7 +495,7 @@ class SlamOptions:
         if self.loop_ties is not None and self.workers:
             raise InvalidOptionError("loop_ties decides each candidate on the closures judged before it: it needs "
                                      "workers 0")
-        if self.loop_search is not None and not (_number(self.loop_search) and math.isfinite(self.loop_search)
+        if self.loop_search is not None and not (_real(self.loop_search) is not None and math.isfinite(self.loop_search)
                                                  and self.loop_search >= 0):
             raise InvalidOptionError(f"loop_search must be None or a finite number >= 0; got {shown(self.loop_search)}")
         try:
@@ -653,11 +652,6 @@ class _Mapping:
                 new = np.zeros((max(size, 2 * len(old)),) + old.shape[1:], dtype=old.dtype)
                 new[:len(old)] = old
                 setattr(self, name, new)
-
-
-def _number(value) -> bool:
-    """Whether ``value`` is a real number (an int or a float, NumPy's too; not a bool)."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 def _checked_scan(scan) -> Scan:
