@@ -8,7 +8,7 @@ import numpy as np
 
 from ._errors import InvalidOptionError, SlamRunError
 
-__all__ = ["OUTPUTS", "output_paths", "write_outputs", "report", "loop_summary", "scan_times"]
+__all__ = ["OUTPUTS", "output_paths", "write_outputs", "report", "loop_summary", "scan_times", "jump_summary"]
 
 OUTPUTS = ("trajectory.tum", "map.yaml", "map.pgm", "graph.g2o", "report.md")
 
@@ -147,6 +147,15 @@ def scan_times(result) -> str:
             f"which compiles Taichi's kernels in a new process: {times[1]:.0f} ms)")
 
 
+def jump_summary(result) -> str:
+    """The odometry jumps that a search found (``SlamOptions.jump_check``), in words."""
+    jumps = [c["scan"] for c in result.jump_checks if c["jump"]]
+    if not jumps:
+        return "no odometry jump found"
+    return (f"the odometry jumps before scan{'s' if len(jumps) > 1 else ''} {', '.join(map(str, jumps))}: "
+            f"bridged by a scan match, the odometry's step left out of the graph")
+
+
 def report(result, source: str = "") -> str:
     """The run's settings, counts and time per stage as Markdown."""
     n = len(result.poses)
@@ -158,6 +167,8 @@ def report(result, source: str = "") -> str:
              f"- {loop_summary(result)} (in the graph: also consistent with their neighbours); matched by helper "
              f"processes: {sum(lp['helper'] for lp in result.loops)}; not matched, already tied (``loop_ties``): "
              f"{result.loops_tied}",
+             f"- odometry steps checked by a search (``jump_check``): {len(result.jump_checks)}; "
+             f"{jump_summary(result)}",
              f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", ""]
     if result.disagreements is not None:
         pairs = result.disagreements

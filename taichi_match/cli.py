@@ -372,7 +372,7 @@ def _slam(args):
 
     from taichi_match import InvalidOptionError
     from taichi_match.logs import read_carmen, read_tum
-    from taichi_match.slam import Slam, SlamOptions, loop_summary, output_paths, scan_times, write_outputs
+    from taichi_match.slam import Slam, SlamOptions, jump_summary, loop_summary, output_paths, scan_times, write_outputs
 
     output_paths(args.out, force=args.force, keep=(args.log, args.reference))      # before any work
     bag = os.path.isdir(args.log) or os.path.splitext(args.log)[1] in (".bag", ".db3", ".mcap")
@@ -426,6 +426,8 @@ def _slam(args):
     print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "
           f"{accepted}/{tried}; {loop_summary(result)}{_audit_line(result)}")
     print(f"each scan as it came: {scan_times(result)}")
+    if any(check["jump"] for check in result.jump_checks):
+        print(f"{jump_summary(result)} (report.md)")
     if reference is not None:
         from taichi_match.evaluation import trajectory_errors
 
