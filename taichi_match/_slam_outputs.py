@@ -150,10 +150,15 @@ def scan_times(result) -> str:
 def jump_summary(result) -> str:
     """The odometry jumps that a search found (``SlamOptions.jump_check``), in words."""
     jumps = [c["scan"] for c in result.jump_checks if c["jump"]]
+    spikes = [c["scan"] - 1 for c in result.jump_checks if c.get("spike")]
     if not jumps:
         return "no odometry jump found"
-    return (f"the odometry jumps before scan{'s' if len(jumps) > 1 else ''} {', '.join(map(str, jumps))}: "
+    said = (f"the odometry jumps before scan{'s' if len(jumps) > 1 else ''} {', '.join(map(str, jumps))}: "
             f"bridged by a scan match, the odometry's step left out of the graph")
+    if spikes:
+        said += (f"; scan{'s' if len(spikes) > 1 else ''} {', '.join(map(str, spikes))} had one bad odometry "
+                 f"reading (the next scan's step taken from the reading before it)")
+    return said
 
 
 def report(result, source: str = "") -> str:
