@@ -797,6 +797,12 @@ def test_cli_exits_1_when_most_scans_match_nothing(short_run, tmp_path, capsys):
     assert (tmp_path / "out" / "trajectory.tum").exists()
 
 
+def _jumped(log, k, jump, spike=False):
+    """``log`` with its odometry moved by ``jump`` from scan ``k`` on (or, a ``spike``, at ``k`` only)."""
+    return LaserLog(tuple(dataclasses.replace(s, pose=compose(np.array(jump), s.pose) if j == k or (j > k and not spike)
+                                              else s.pose) for j, s in enumerate(log.scans)), log.odometry)
+
+
 @pytest.mark.parametrize("jump", [(19.0, 0.0, 0.0), (3.0, 0.0, 0.0), (0.0, 0.0, 1.0), (2.0, -1.0, 0.5)])
 @pytest.mark.parametrize("spike", [False, True])
 def test_an_odometry_jump_is_bridged_by_a_search(simulated, jump, spike):
@@ -807,10 +813,7 @@ def test_an_odometry_jump_is_bridged_by_a_search(simulated, jump, spike):
     graph (a spike's next scan takes its step from the reading before the jump), and the run
     meets the ATE targets against the exact truth."""
     k = len(simulated.log) // 3
-    moved = np.array(jump)
-    scans = tuple(dataclasses.replace(s, pose=compose(moved, s.pose) if j == k or (j > k and not spike) else s.pose)
-                  for j, s in enumerate(simulated.log.scans))
-    result = Slam().run(LaserLog(scans, simulated.log.odometry))
+    result = Slam().run(_jumped(simulated.log, k, jump, spike))
     errors = trajectory_errors(result.poses, simulated.truth)
     assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0, errors
     checks = [(c["scan"], c["jump"], c["spike"]) for c in result.jump_checks]
@@ -826,14 +829,26 @@ def test_an_odometry_jump_is_bridged_by_a_search(simulated, jump, spike):
 
 def test_cli_slam_reports_an_odometry_jump(short_run, tmp_path, capsys):
     k = len(short_run.log) // 2
-    scans = tuple(dataclasses.replace(s, pose=compose(np.array([5.0, 0.0, 0.0]), s.pose) if j >= k else s.pose)
-                  for j, s in enumerate(short_run.log.scans))
     log_path = tmp_path / "jumped.log"
-    write_carmen(log_path, LaserLog(scans, short_run.log.odometry))
+    write_carmen(log_path, _jumped(short_run.log, k, (5.0, 0.0, 0.0)))
     assert main(["slam", str(log_path), "--out", str(tmp_path / "out")]) == 0
     said = f"the odometry jumps before scan {k}: bridged by a scan match"
     assert said in capsys.readouterr().out
     assert said in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_add_then_finish_bridges_a_spike_as_run_does(short_run):
+    """The jump check and the spike's next scan run the same scan by scan (``add``) as over the
+    whole log (``run``), bit for bit."""
+    log = _jumped(short_run.log, len(short_run.log) // 2, (4.0, -1.0, 0.3), spike=True)
+    reference = Slam().run(log)
+    assert [(c["jump"], c["spike"]) for c in reference.jump_checks] == [(True, False), (False, True)]
+    slam = Slam()
+    for scan in log.scans:
+        slam.add(scan)
+    result = slam.finish()
+    assert result.poses.tobytes() == reference.poses.tobytes()
+    assert len(result.jump_checks) == 2
 
 
 def test_a_large_odometry_step_that_is_right_is_not_a_jump():
