@@ -804,6 +804,32 @@ class Slam:
         sd_r = per_rad * abs(delta[2]) + rad_per_m * d + floor_rad
         return np.diag([sd_t**2, sd_t**2, sd_r**2])
 
+    def _odometry_glitch(self, m, k, target, scan_grid, res, gated, guess, delta):
+        """Scan ``k``'s front-end match ``res`` (from ``guess``, the odometry's prediction in the
+        target's frame; ``gated``: kept) when the odometry may have glitched: after a jump found
+        at the scan before, also the match from the readings on either side of it (``_skipped_step``),
+        kept when it passes its own odometry gate and fits better; then, if no match is kept at an
+        unusual step (``_unusual_step``), the search for a jump (``_check_jump``). Returns (the
+        match to keep instead, or None; the odometry's edge into scan k as (source scan, step), or
+        None when the odometry jumped)."""
+        est, edge = m.est, (k - 1, delta)
+        skipped = self._skipped_step(m, k)
+        if skipped is not None:
+            start = compose(inverse(est[target.key]), compose(est[k - 2], skipped))
+            other = self._scan_matcher.match(m.target_cast[2], scan_grid, start)
+            if (scan_accepted(other) and self._agrees_with_odometry(other, start, est[k - 2], est[target.key], skipped)
+                    and (not gated or other.residual < res.residual)):
+                m.jump_checks.append({"scan": k, "odometry_step": skipped, "window": None, "found": True,
+                                      "step": compose(inverse(est[k - 2]), compose(est[target.key], other.pose)),
+                                      "jump": False, "spike": True})
+                return other, (k - 2, skipped)
+        window = None if gated else self._unusual_step(m)
+        if window is not None:
+            jumped = self._check_jump(m, k, target, scan_grid, res, guess, delta, window)
+            if jumped is not None:
+                return jumped, None
+        return None, edge
+
     def _unusual_step(self, m):
         """The search window (metres, radians) when the latest odometry step is beyond it: beyond
         ``jump_check`` times the median of the last ``JUMP_STEPS`` steps and the floors
@@ -1086,28 +1112,14 @@ class Slam:
             seconds["scan matching"] += time.perf_counter() - t2 + preparing
         verdict = res is not None and scan_accepted(res)
         gated = verdict and self._agrees_with_odometry(res, guess, est[k - 1], est[target.key], delta)
-        jump, edge = False, (k - 1, delta)              # the odometry's edge into scan k
-        skipped = self._skipped_step(m, k)
-        if res is not None and skipped is not None:
+        edge = (k - 1, delta)                             # the odometry's edge into scan k
+        if res is not None:
             t = time.perf_counter()
-            start = compose(inverse(est[target.key]), compose(est[k - 2], skipped))
-            other = self._scan_matcher.match(m.target_cast[2], scan_grid, start)
-            if (scan_accepted(other) and self._agrees_with_odometry(other, start, est[k - 2], est[target.key], skipped)
-                    and (not gated or other.residual < res.residual)):
-                res, verdict, gated, edge = other, True, True, (k - 2, skipped)
-                m.jump_checks.append({"scan": k, "odometry_step": skipped, "window": None, "found": True,
-                                      "step": compose(inverse(est[k - 2]), compose(est[target.key], other.pose)),
-                                      "jump": False, "spike": True})
+            rescued, edge = self._odometry_glitch(m, k, target, scan_grid, res, gated, guess, delta)
+            if rescued is not None:
+                res, verdict, gated = rescued, True, True
             seconds["scan matching"] += time.perf_counter() - t
-        if res is not None and not gated:
-            window = self._unusual_step(m)
-            if window is not None:
-                t = time.perf_counter()
-                found = self._check_jump(m, k, target, scan_grid, res, guess, delta, window)
-                if found is not None:
-                    res, verdict, gated, jump = found, True, True, True
-                seconds["scan matching"] += time.perf_counter() - t
-        if not jump:
+        if edge is not None:                              # None: the odometry jumped into scan k
             source, step = edge
             m.graph.add(gtsam.BetweenFactorPose2(source, k, gtsam.Pose2(*step), self._odometry_noise(gtsam, step)))
         m.records.append({"scan": k, "submap": target.index, "pose": None if res is None else res.pose,
@@ -1121,7 +1133,7 @@ class Slam:
         else:
             est[k] = pred
         est[k, 2] = wrap_angle(est[k, 2])
-        step = compose(inverse(est[k - 1]), est[k]) if jump or edge[0] != k - 1 else delta
+        step = delta if edge is not None and edge[0] == k - 1 else compose(inverse(est[k - 1]), est[k])
         m.travelled[k] = m.travelled[k - 1] + math.hypot(step[0], step[1])
         m.values.insert(k, gtsam.Pose2(*est[k]))
         m.keys.append(k)
