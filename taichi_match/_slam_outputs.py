@@ -172,7 +172,8 @@ def report(result, source: str = "") -> str:
              f"- {loop_summary(result)} (in the graph: also consistent with their neighbours); matched by helper "
              f"processes: {sum(lp['helper'] for lp in result.loops)}; not matched, already tied (``loop_ties``): "
              f"{result.loops_tied}",
-             f"- odometry steps checked by a search (``jump_check``): {len(result.jump_checks)}; "
+             f"- odometry steps checked by a search (``jump_check``): "
+             f"{sum(c['window'] is not None for c in result.jump_checks)}; "
              f"{jump_summary(result)}",
              f"- final map: {result.map.shape[1]} x {result.map.shape[0]} cells", ""]
     if result.disagreements is not None:

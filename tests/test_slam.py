@@ -827,6 +827,19 @@ def test_an_odometry_jump_is_bridged_by_a_search(simulated, jump, spike):
     assert ((k - 1, k + 1) in joined and (k, k + 1) not in joined) if spike else (k, k + 1) in joined
 
 
+@pytest.mark.parametrize("jump, spike", [((18.0, 0.0, 0.0), False), ((0.0, 0.0, 1.0), True)])
+def test_an_odometry_jump_at_a_corner_is_bridged(simulated, jump, spike):
+    """At scan 100 the simulated robot turns 93 degrees between two scans: the search turns as far
+    as the odometry did (a window of the run's usual turns alone missed every jump there)."""
+    k = 100
+    about = simulated.log.scans[k - 1].pose
+    motion = compose(about, compose(np.array(jump), inverse(about)))
+    result = Slam().run(_jumped(simulated.log, k, motion, spike))
+    errors = trajectory_errors(result.poses, simulated.truth)
+    assert errors["ate_m"] <= 0.10 and errors["ate_deg"] <= 1.0, errors
+    assert [(c["scan"], c["jump"]) for c in result.jump_checks][:1] == [(k, True)]
+
+
 def test_cli_slam_reports_an_odometry_jump(short_run, tmp_path, capsys):
     k = len(short_run.log) // 2
     log_path = tmp_path / "jumped.log"
@@ -851,21 +864,20 @@ def test_add_then_finish_bridges_a_spike_as_run_does(short_run):
     assert len(result.jump_checks) == 2
 
 
-def test_a_large_odometry_step_that_is_right_is_not_a_jump():
-    """On a real log whose front end fails at a few large odometry steps (orebro: turns of 40-44
-    degrees, a step of 1.35 m), the search finds no scan away from where the odometry put it: no
-    jump, and the trajectory is the one without the check, bit for bit."""
-    logs = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "logs", "orebro")
+@pytest.mark.parametrize("name, overrides", [("orebro", {}), ("fhw", {}), ("csail", {"max_ray_length": 10.0})])
+def test_a_large_odometry_step_that_is_right_is_not_a_jump(name, overrides):
+    """Real logs whose front end fails at a few large odometry steps (orebro: turns of 40-44
+    degrees, a step of 1.35 m; fhw at scan 57 and csail at scan 201 with 10 m rays, where the
+    search finds a pose 0.6-3.2 m away that fits the submap better than the refused match, and
+    which a red-team pass and a wider search window made false jumps): no jump, and the
+    trajectory is the one without the check, bit for bit."""
+    logs = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "logs", name)
     found = [f for f in (os.listdir(logs) if os.path.isdir(logs) else []) if ".log" in f and "reference" not in f]
     if not found:
-        pytest.skip("../shared/logs/orebro is not here")
+        pytest.skip(f"../shared/logs/{name} is not here")
     log = read_carmen(os.path.join(logs, found[0]))
-    checked, unchecked = Slam().run(log), Slam(jump_check=None).run(log)
-    assert len(checked.jump_checks) >= 2 and not any(c["jump"] for c in checked.jump_checks)
-    for check in checked.jump_checks:
-        if check["found"]:         # found near the odometry's step
-            odometry, step = check["odometry_step"], check["step"]
-            assert math.hypot(*(step[:2] - odometry[:2])) < 0.5 and abs(wrap_angle(step[2] - odometry[2])) < 0.5
+    checked, unchecked = Slam(**overrides).run(log), Slam(jump_check=None, **overrides).run(log)
+    assert len(checked.jump_checks) >= 1 and not any(c["jump"] or c["spike"] for c in checked.jump_checks)
     assert np.array_equal(checked.poses, unchecked.poses) and unchecked.jump_checks == []
 
 
