@@ -412,11 +412,13 @@ class SlamOptions:
         0.5 rad) a third of the way round): ATE 1.4-8.9 m and 1.3-29 degrees, 95-97 % of the scan
         matches accepted, exit 0; with the check 0.009-0.010 m and 0.14-0.15 degree, as without
         the jump (0.009 m). Planted at a third and half way into aces, seattle and orebro (18 m,
-        1 radian, or (3 m, -2 m, 0.3 rad) about the scan before): ATE 6.5-15.4 m without the check;
+        1 radian, or (3 m, -2 m, 0.3 rad) about the scan before; bench/ODOMETRY_JUMPS.md): ATE
+        6.5-15.4 m without the check;
         with it 16 jumps of 18 found, ATE 0.068-0.074 m on aces (0.070 unplanted), 0.034-0.039 on
         seattle (0.035), 0.079-0.189 on orebro (0.092); the two missed, both 1 radian, turned the
         step by no more than the run's usual turns. On the shared logs as they are it searches at
-        0-4 scans a log (0.2-1.8 ms a scan in all) and finds no jump: the trajectories the same
+        0-4 scans a log (0-1.4 ms a scan in all, 0.22 s at most for one) and finds no jump: the
+        trajectories the same
         bit for bit. A jump that returns at the next scan (one bad reading, a spike) is found as
         well, and the next scan is then matched from the step between the readings on either
         side of the bad one (``Slam._skipped_step``): on the simulated run a 3 m spike left the
