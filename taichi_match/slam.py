@@ -868,25 +868,23 @@ class Slam:
 
     def _check_jump(self, m, k, target, scan_grid, refused, predicted, delta, window):
         """Scan ``k``'s match (``refused``, from the odometry's prediction ``predicted``, both in
-        the target's frame) failed at an unusual odometry step ``delta``: search for the scan in its target
-        within ``window`` (metres, radians) of the previous scan's pose, as if the robot had not
-        moved. The odometry jumped when the search finds a pose that ``scan_accepted`` takes,
-        proven and without a rival, within the window, more than ``JUMP_FLOOR_M`` or
+        the target's frame) failed at an unusual odometry step ``delta``: search for the scan in
+        its target within ``window`` (metres, radians) of the previous scan's pose, as if the robot
+        had not moved. The odometry jumped when the search finds a pose that ``scan_accepted``
+        takes, proven and without a rival, within the window, more than ``JUMP_FLOOR_M`` or
         ``JUMP_FLOOR_RAD`` from the prediction, where the scan fits clearly better than the match
         from the prediction (its residual at most ``AMBIGUITY`` times that one's, or that one met
         fewer than ``SCAN_MIN_WALLS`` walls: at the robot's next pose a scan overlaps the scans
-        before it, which its target holds; a guess 19 m off wandered away, its residual 0). Returns that
-        match, or None, and records the check in ``jump_checks``."""
-        est = m.est
-        start = compose(inverse(est[target.key]), est[k - 1])
+        before it, which its target holds; a guess 19 m off wandered away, its residual 0), and
+        the scan before says so too (``_scans_say_jump``). Returns that match, or None, and
+        records the check in ``jump_checks``."""
+        start = compose(inverse(m.est[target.key]), m.est[k - 1])
         target_grid = m.target_cast[2]
         try:
             res = self._scan_matcher.match(target_grid, scan_grid, start, search_window=window)
         except InvalidMapError:                   # a map without walls: nothing to search with
-            m.jump_checks.append({"scan": k, "odometry_step": np.array(delta), "window": window, "found": False,
-                                  "step": None, "jump": False, "spike": False})
-            return None
-        found = (scan_accepted(res) and res.search_complete is not False
+            res = None
+        found = (res is not None and scan_accepted(res) and res.search_complete is not False
                  and _same_place(res.pose, start, window[0] + JUMP_FLOOR_M, window[1] + JUMP_FLOOR_RAD) and not any(
                      # a runner-up scoring close to the best (the search's ambiguity, on lattice poses)
                      # is a rival only when a match from it is taken too, elsewhere, with a residual
