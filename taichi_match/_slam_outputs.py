@@ -125,14 +125,17 @@ def _plain_graph(gtsam, graph):
 
 def loop_summary(result) -> str:
     """The loop closures in one line: accepted of tried and in the graph, the loop-closing stage's
-    and the audit's repairs (``audit``) apart."""
+    and the audit's repairs (``audit``) apart, and those the final gate took out (``loop_gate``)."""
     def counts(loops):
         return (f"accepted {sum(lp['accepted'] for lp in loops)}/{len(loops)}, "
                 f"in the graph {sum(lp['edge'] for lp in loops)}")
 
     repairs = [lp for lp in result.loops if lp.get("repair")]
+    gated = sum(bool(lp.get("gated")) for lp in result.loops)
     text = f"loop closures {counts([lp for lp in result.loops if not lp.get('repair')])}"
-    return text + (f"; the audit's repairs {counts(repairs)}" if repairs else "")
+    text += f"; the audit's repairs {counts(repairs)}" if repairs else ""
+    gate = f"; {gated} taken out of the graph at the end, the optimised graph contradicting them (loop_gate)"
+    return text + (gate if gated else "")
 
 
 def scan_times(result) -> str:

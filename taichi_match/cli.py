@@ -409,9 +409,10 @@ def _slam(args):
                                                ("solver", args.solver),
                                                ("audit", None if args.audit == "off" else args.audit),
                                                ("front_end_inflation", args.front_end_inflation),
-                                               ("gate_inflation", args.gate_inflation))
+                                               ("gate_inflation", args.gate_inflation),
+                                               ("loop_gate", None if args.loop_gate == "off" else args.loop_gate))
                              if v is not None})
-    for field, flag in (("loop_ties", args.loop_ties), ("audit", args.audit)):
+    for field, flag in (("loop_ties", args.loop_ties), ("audit", args.audit), ("loop_gate", args.loop_gate)):
         if flag == "off":
             options = dataclasses.replace(options, **{field: None})
     front_end = {k: v for k, v in (("levels", args.front_end_levels), ("interpolation", args.front_end_lookup))
@@ -484,12 +485,17 @@ def _demo_slam(args):
 
 def _metres_or_off(text: str):
     """A number of metres, or "off"."""
+    return _number_or_off(text, "a number of metres")
+
+
+def _number_or_off(text: str, what: str = "a number"):
+    """A number, or "off"."""
     if text.strip().lower() == "off":
         return "off"
     try:
         return float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of metres or 'off', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected {what} or 'off', got {text!r}") from None
 
 
 def _audit_line(result) -> str:
@@ -716,6 +722,10 @@ def main(argv=None):
     slam.add_argument("--gate-inflation", type=float, metavar="X",
                       help="the odometry gate takes X times a front-end match's covariance (default 2, see "
                            "SlamOptions.gate_inflation)")
+    slam.add_argument("--loop-gate", type=_number_or_off, metavar="CHI2",
+                      help="at the end, take out of the graph the loop closures whose residual at the optimised "
+                           "poses exceeds this chi-square in their own covariance, and optimise again (default "
+                           "16.27, 99.9 %% with 3 degrees of freedom), or 'off' (see SlamOptions.loop_gate)")
     slam.add_argument("--front-end-levels", type=int, metavar="N",
                       help="pyramid levels of the front end's matches (default 2, see SlamOptions.scan_matcher)")
     slam.add_argument("--front-end-lookup", choices=("bilinear", "nearest"),

@@ -96,9 +96,10 @@ def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
 def test_simulated_run_loop_closures_against_the_truth(simulated, mapped):
     """The loop closures in the graph against the exact truth of the two nodes each joins (a submap
     frame's: ``evaluation.frame_reference``; wrong: 0.2 m or 1 degree off, Cartographer's
-    criterion): 8 of 141 on this run (5-10 over twenty runs with the odometry moved by a
-    micrometre, bench/SLAM.md; 8-16 with a submap's frame at its first scan's node,
-    bench/SLAM_before_submap_frames.md). Pins this run's spread; the target (none wrong) is not met."""
+    criterion): 3 of 136 on this run, 8 of 141 before ``loop_gate`` (5-10 over twenty runs with
+    the odometry moved by a micrometre, bench/SLAM.md before the gate; 8-16 with a submap's frame
+    at its first scan's node, bench/SLAM_before_submap_frames.md). Pins this run's spread; the
+    target (none wrong) is not met."""
     from taichi_match import compose, inverse, wrap_angle
 
     truth = simulated.truth
@@ -106,7 +107,108 @@ def test_simulated_run_loop_closures_against_the_truth(simulated, mapped):
     errors = [compose(inverse(compose(inverse(a), b)), loop["pose"])
               for loop in edges for a, b in [_node_truth(loop, truth)]]
     wrong = [e for e in errors if math.hypot(e[0], e[1]) > 0.2 or abs(math.degrees(wrap_angle(e[2]))) > 1.0]
-    assert len(edges) >= 100 and len(wrong) <= 10, (len(wrong), len(edges))
+    assert len(edges) >= 100 and len(wrong) <= 5, (len(wrong), len(edges))
+
+
+def _se2_log(pose):
+    """SE(2)'s logarithm of (x, y, theta) in plain NumPy: (v_x, v_y, theta), the translation
+    taken through the inverse of V(theta) (an independent check of gtsam's ``Pose2.Logmap``)."""
+    x, y, w = pose
+    if abs(w) < 1e-12:
+        return np.array([x, y, w])
+    a, b = math.sin(w) / w, (1.0 - math.cos(w)) / w
+    return np.append(np.linalg.solve(np.array([[a, -b], [b, a]]), [x, y]), w)
+
+
+def _factor_set(graph):
+    """The graph's between-factors as (keys, measured x, y, theta to 1e-9: gtsam keeps the angle as
+    its cosine and sine)."""
+    out = set()
+    for i in range(graph.size()):
+        factor = graph.at(i)
+        if isinstance(factor, gtsam.BetweenFactorPose2):
+            m = factor.measured()
+            out.add((tuple(factor.keys()), *np.round([m.x(), m.y(), m.theta()], 9)))
+    return out
+
+
+def _loop_key(loop):
+    return (tuple(loop["frames"]), *np.round(loop["pose"], 9))
+
+
+def test_loop_gate_takes_out_the_closures_the_optimised_graph_contradicts(simulated, mapped, monkeypatch):
+    """Every loop closure in the graph at the end has its residual at the optimised poses (those
+    the gate sees, before the graph is optimised without the closures it takes out), squared in
+    its own covariance, recomputed here from the frames' poses in NumPy (SE(2)'s logarithm, the
+    covariance turned into the relative pose's axes): those above ``loop_gate`` are out of the
+    graph, the others in it. On this run the gate takes out some, most of them wrong against the
+    exact truth, and leaves at most 5 wrong ones in the graph (8 without it)."""
+    seen = []
+    original = Slam._gate_loops
+
+    def watched(self, m):
+        seen.append(gtsam.Values(m.values))
+        return original(self, m)
+
+    monkeypatch.setattr(Slam, "_gate_loops", watched)
+    result = Slam().run(simulated.log)
+    np.testing.assert_array_equal(result.poses, mapped.poses)
+    (values,) = seen
+    gate = result.options.loop_gate
+    present = _factor_set(result.graph)
+    checked = [loop for loop in result.loops if "residual" in loop]
+    assert len(checked) >= 100
+    for loop in checked:
+        a, b = (values.atPose2(key) for key in loop["frames"])
+        estimate = compose(inverse([a.x(), a.y(), a.theta()]), [b.x(), b.y(), b.theta()])
+        error = _se2_log(compose(inverse(loop["pose"]), estimate))
+        c, s = math.cos(loop["pose"][2]), math.sin(loop["pose"][2])
+        turn = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        chi2 = error @ np.linalg.solve(turn @ np.asarray(loop["covariance"]) @ turn.T, error)
+        assert loop["residual"] == pytest.approx(chi2, rel=1e-6, abs=1e-9)
+        assert loop["gated"] == (chi2 > gate) and loop["edge"] == (chi2 <= gate)
+        assert (_loop_key(loop) in present) == loop["edge"]
+    truth = simulated.truth
+
+    def wrong(loop):
+        fa, fb = _node_truth(loop, truth)
+        e = compose(inverse(compose(inverse(fa), fb)), loop["pose"])
+        return math.hypot(e[0], e[1]) > 0.2 or abs(math.degrees(wrap_angle(e[2]))) > 1.0
+
+    gated = [loop for loop in checked if loop["gated"]]
+    assert gated and 2 * sum(map(wrong, gated)) > len(gated), [wrong(loop) for loop in gated]
+    assert sum(wrong(loop) for loop in checked if loop["edge"]) <= 5
+
+
+def test_loop_gate_takes_out_a_planted_false_closure(one_lap, monkeypatch):
+    """The first accepted loop closure moved by 0.6 m and 3 degrees, its covariance kept, and let in
+    (no neighbours' vote, no audit): the gate takes it out of the graph (``graph.g2o``'s readers
+    have no robust kernel); without the gate it stays in. The poses differ by under a centimetre:
+    the Cauchy kernel had already all but silenced it, and the gate acts only at the end."""
+    original = Matcher.match
+    planted = []
+
+    def lying(self, a, b, guess, *args, **kwargs):
+        res = original(self, a, b, guess, *args, **kwargs)
+        if res.accepted and not planted and self is not mapper._scan_matcher:
+            res = dataclasses.replace(res, pose=compose(res.pose, [0.6, 0.0, math.radians(3.0)]))
+            planted.append(res.pose)
+        return res
+
+    monkeypatch.setattr(Matcher, "match", lying)
+    poses = {}
+    for gate in (SlamOptions().loop_gate, None):
+        planted.clear()
+        mapper = Slam(loop_gate=gate, loop_consistency=False, audit=None)
+        result = mapper.run(one_lap)
+        (lie,) = [loop for loop in result.loops if np.array_equal(loop["pose"], planted[0])]
+        assert (_loop_key(lie) in _factor_set(result.graph)) == lie["edge"] == (gate is None)
+        assert lie.get("gated", False) == (gate is not None)
+        if gate is not None:
+            assert lie["residual"] > 10 * gate
+        poses[gate] = result.poses
+    moved = np.abs(poses[None][:, :2] - poses[SlamOptions().loop_gate][:, :2]).max()
+    assert 0 < moved < 0.01, moved
 
 
 def test_loop_closures_see_older_submaps_as_the_graph_places_them(simulated, monkeypatch):
@@ -168,7 +270,7 @@ def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
     found = Slam(audit="report").run(simulated.log)
     assert found.disagreements == [] and found.seconds["audit"] > 0
     monkeypatch.setattr(slam_module, "_optimise", shifted)
-    broken = Slam(audit="report").run(simulated.log)
+    broken = Slam(audit="report", loop_gate=None).run(simulated.log)
     pairs = broken.disagreements
     assert len(pairs) >= 5
     assert all(a * first_of < half <= b * first_of + scans for a, b in (p["submaps"] for p in pairs))
@@ -184,7 +286,9 @@ def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
     # 0.45 degree (a known limit of thin closures: of the real logs' closures with 100-300 walls
     # compared 18-22 % are wrong against the references, docs/slam.md): of those only that they
     # move the pair most of the way is asserted.
-    repaired = Slam(audit="repair").run(simulated.log)
+    # (no ``loop_gate``: the faked optimum contradicts every closure across the fault, which the
+    # gate would take out after the repair)
+    repaired = Slam(audit="repair", loop_gate=None).run(simulated.log)
     closures = [lp for lp in repaired.loops if lp.get("repair") and lp["accepted"]]
     assert closures and sum(p["repaired"] for p in repaired.disagreements) == len(closures)
     well_supported = 0
@@ -395,14 +499,15 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
                                                  ("--loop-radius", "loop_radius", (8.0, 3.0)),
                                                  ("--audit", "audit", ("report", "repair")),
                                                  ("--front-end-inflation", "front_end_inflation", (2.0, 6.0)),
-                                                 ("--gate-inflation", "gate_inflation", (6.0, 2.0))])
+                                                 ("--gate-inflation", "gate_inflation", (6.0, 2.0)),
+                                                 ("--loop-gate", "loop_gate", (30.0, 16.27))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is the default without them ("off": None)."""
     log_path = tmp_path / "run.log"
     write_carmen(log_path, short_run.log)
     flags = [flag] if values[0] is True else [flag, str(values[0])]
-    off = [([flag, "off"], None)] if flag in ("--loop-ties", "--audit") else []
+    off = [([flag, "off"], None)] if flag in ("--loop-ties", "--audit", "--loop-gate") else []
     runs = [(flags, values[0]), ([], values[1])] + off
     for k, (args, value) in enumerate(runs):
         out = tmp_path / f"out{k}"
@@ -508,7 +613,9 @@ def test_truncated_log_raises(short_run, tmp_path):
                                           ("gate_inflation", 0.0), ("gate_inflation", -1.0),
                                           ("gate_inflation", math.nan), ("gate_inflation", "2"),
                                           ("gate_inflation", True), ("jump_check", 0.5), ("jump_check", math.inf),
-                                          ("jump_check", "3"), ("jump_check", True)])
+                                          ("jump_check", "3"), ("jump_check", True),
+                                          ("loop_gate", 0.0), ("loop_gate", -1.0), ("loop_gate", math.nan),
+                                          ("loop_gate", math.inf), ("loop_gate", "16"), ("loop_gate", True)])
 def test_options_are_checked(field, value):
     with pytest.raises(InvalidOptionError):
         SlamOptions(**{field: value})
