@@ -445,8 +445,15 @@ class SlamOptions:
         (1-10) are those of the right ones, and one of the simulated run's is 1 degree off in a
         direction its covariance leaves free (its standard deviations are metres). A gate at 50
         or 100 took out a half to a fifth as many wrong ones; gating again after the second
-        optimisation took out 2 more of fhw's 430. Graduated non-convexity (``robust_kernel``)
-        rejected differently and raised the ATE.
+        optimisation took out 2 more of fhw's 430. Twenty runs per log (bench/SLAM.md against
+        bench/SLAM_before_loop_gate.md, the same runs up to the gate): median wrong closures
+        simulated 8 -> 3, fhw 40 -> 24, belgioioso 4 -> 2, seattle 3 -> 1, aces 2 -> 1,
+        freiburg-101 3 -> 2, csail 9 -> 9; each run's ATE within -4.6 to +5.3 mm of the same run
+        without the gate (bench/LOOP_GATE.md: lower in most runs of belgioioso, seattle and fhw,
+        higher in most of csail, freiburg-101 and aces; the median change per log -0.9 to +1.0
+        mm), 146 runs of 180 within the ATE target against 149
+        (three crossed 0.10 m by 1-3 mm). Graduated non-convexity (``robust_kernel``) rejected
+        differently and raised the ATE.
     submap_frames : give each submap its own frame node in the graph (see the module docstring);
         False: a submap's frame is its first scan's node (the default before 2026-12-06).
     matcher : the ``MatchOptions`` of the loop-closure matches. Both matchers leave the overlap
