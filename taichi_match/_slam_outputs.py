@@ -172,7 +172,8 @@ def report(result, source: str = "") -> str:
     lines = ["# taichi-match slam", "", f"Input: `{source}`" if source else "", "",
              f"- scans: {n}; submaps of {result.options.submap_scans} scans at {result.options.resolution} m",
              f"- scan-to-submap matches accepted: {accepted} of {tried}",
-             f"- {loop_summary(result)} (in the graph: also consistent with their neighbours); matched by helper "
+             f"- {loop_summary(result)} (in the graph: accepted, consistent with their neighbours and at the end "
+             f"with the optimised graph); matched by helper "
              f"processes: {sum(lp['helper'] for lp in result.loops)}; not matched, already tied (``loop_ties``): "
              f"{result.loops_tied}",
              f"- odometry steps checked by a search (``jump_check``): "
@@ -187,8 +188,10 @@ def report(result, source: str = "") -> str:
         lines += [f"Audit: {len(pairs)} pairs of submaps disagreed at the poses optimised before the audit (walls of "
                   f"one on the other's free space){ending}", ""]
         notes = {(True, False): "; repaired", (False, True): "; a loop closure in the graph joins them"}
+        gated = "; the loop gate took a closure between them out of the graph"
         lines += [f"- submaps {a} and {b}: {p['walls']} walls compared, {p['agreement']:.2f} agree, "
                   f"{p['conflict']:.2f} on free space{notes.get((p['repaired'], p.get('joined', False)), '')}"
+                  f"{gated if p.get('gated') else ''}"
                   for p in pairs for a, b in [p["submaps"]]]
         lines += [""] if pairs else []
     lines += ["| stage | seconds | ms per scan |", "|---|---|---|"]

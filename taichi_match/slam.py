@@ -618,9 +618,10 @@ class SlamResult:
         completed a submap that submap's loop closures and an optimisation).
     disagreements : with ``audit``, one dict per pair of complete submaps that disagreed at the
         poses optimised before the audit (submaps, walls compared, agreement, conflict, repaired:
-        whether a repair closure now joins them; with "repair" also joined: whether a loop closure
-        in the graph joined them already, so no repair was searched; ``poses`` are those optimised
-        again after the repair); None without ``audit``.
+        whether a repair closure now joins them, in the final graph; with "repair" also joined:
+        whether a loop closure in the graph joined them already, so no repair was searched; with
+        ``loop_gate``, when it took out a closure, gated: whether one joining them was; ``poses``
+        are those optimised again after the repair and the gate); None without ``audit``.
     """
 
     poses: np.ndarray
@@ -1267,6 +1268,10 @@ class Slam:
         if opts.loop_gate is not None and self._gate_loops(m):
             est[keys] = _optimise(gtsam, m.graph, m.values, keys)
             m.values = _values(gtsam, est, keys)
+            for pair in disagreements or ():          # the audit's pairs as the graph now joins them
+                pair["gated"] = any(lp.get("gated") and lp["submaps"] == pair["submaps"] for lp in m.loops)
+                pair["repaired"] = pair["repaired"] and any(
+                    lp["edge"] and lp["repair"] and lp["submaps"] == pair["submaps"] for lp in m.loops)
         t0, t1 = t1, time.perf_counter()
         seconds["optimisation"] += t1 - t0
         world = scans_to_grid(m.scans, est[:n], resolution=opts.resolution, model=self._map_model)
@@ -1283,15 +1288,16 @@ class Slam:
     def _gate_loops(self, m) -> int:
         """Take out of the graph each loop closure whose residual at the optimised poses (``m.values``),
         squared in its own covariance, exceeds ``loop_gate`` (the Cauchy kernel had already all but
-        silenced it): its record gets "residual" (that chi-square, as every closure in the graph
-        does) and "edge" False, "gated" True. Returns how many."""
+        silenced it), as does one whose chi-square is not a number: its record gets "residual" (that
+        chi-square, as every closure in the graph does) and "edge" False, "gated" True. Returns how
+        many."""
         taken = 0
         for loop in m.loops:
             if loop["edge"]:
                 factor = m.graph.at(loop["factor"])
                 loop["residual"] = factor.noiseModel().noise().squaredMahalanobisDistance(
                     factor.unwhitenedError(m.values))
-                loop["gated"] = loop["residual"] > self.options.loop_gate
+                loop["gated"] = not bool(loop["residual"] <= self.options.loop_gate)
                 if loop["gated"]:
                     m.graph.remove(loop["factor"])
                     loop["edge"] = False

@@ -211,6 +211,31 @@ def test_loop_gate_takes_out_a_planted_false_closure(one_lap, monkeypatch):
     assert 0 < moved < 0.01, moved
 
 
+def test_loop_gate_takes_out_a_closure_whose_residual_is_not_a_number(one_lap, monkeypatch):
+    """A loop closure's edge given a covariance of 1e18 along one direction (gtsam's chi-square of
+    it is NaN: the red-team pass that found a NaN passing the gate): it leaves the graph."""
+    import types
+
+    original = Slam._match_edge
+    planted = []
+
+    def edge(self, gtsam, graph, a, b, res, inflation=1.0):
+        if inflation == 1.0 and not planted:
+            c, s = math.cos(0.7), math.sin(0.7)
+            turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            res = types.SimpleNamespace(pose=res.pose,
+                                        calibrated_covariance=turn @ np.diag([1e18, 1e-4, 1e-6]) @ turn.T)
+            planted.append((a, b))
+        return original(self, gtsam, graph, a, b, res, inflation)
+
+    monkeypatch.setattr(Slam, "_match_edge", edge)
+    result = Slam(audit=None, loop_consistency=False).run(one_lap)
+    (loop,) = [lp for lp in result.loops if lp["frames"] == planted[0]]
+    assert not loop["residual"] <= result.options.loop_gate
+    assert loop["gated"] is True and not loop["edge"] and _loop_key(loop) not in _factor_set(result.graph)
+    assert np.all(np.isfinite(result.poses))
+
+
 def test_loop_closures_see_older_submaps_as_the_graph_places_them(simulated, monkeypatch):
     """Every loop-closure match sees the older submap cast at poses (in its frame) within half a
     cell and 0.2 degree of the estimates of the moment; the graph does move some after their
@@ -311,6 +336,18 @@ def test_the_audit_finds_a_lap_mapped_out_of_place(simulated, monkeypatch):
     text = slam_module.report(repaired)
     assert text.count("a loop closure in the graph joins them") == len(joined)
     assert f"the audit's repairs accepted {len(closures)}/" in text and f"{len(closures)} of them now joined" in text
+    # with ``loop_gate`` the faked optimum contradicts the repair closures as well: the gate takes
+    # them out of the graph, and the pairs no longer say a closure joins them (a red-team pass found
+    # report.md still calling them repaired)
+    gated = Slam(audit="repair").run(simulated.log)
+    for pair in gated.disagreements:
+        between = [lp for lp in gated.loops if lp["submaps"] == pair["submaps"]]
+        assert pair["repaired"] == any(lp["edge"] and lp["repair"] for lp in between)
+        assert pair.get("gated", False) == any(lp.get("gated", False) for lp in between)
+    assert any(p.get("gated") for p in gated.disagreements)
+    text = slam_module.report(gated)
+    assert text.count("; repaired") == sum(p["repaired"] for p in gated.disagreements)
+    assert text.count("; the loop gate took") == sum(p.get("gated", False) for p in gated.disagreements)
     # the repair's closures face the neighbours' vote like any loop closure: vetoed, none enters the graph
     votes = Slam._neighbour_votes
     monkeypatch.setattr(Slam, "_neighbour_votes",
