@@ -396,25 +396,24 @@ def _slam(args):
         if len(stamps) != len(log) or not np.allclose(stamps, log.timestamps, rtol=0.0, atol=1e-3):
             raise ValueError(f"{args.reference}: the reference must hold one pose per scan, at the scans' "
                              f"timestamps ({len(stamps)} poses for {len(log)} scans)")
-    options = SlamOptions(**{k: v for k, v in (("submap_scans", args.submap_scans), ("resolution", args.resolution),
-                                               ("max_ray_length", args.max_ray),
-                                               ("free_margin", args.free_margin),
-                                               ("target_refresh", args.target_refresh),
-                                               ("submap_frames", args.submap_frames),
-                                               ("share_coarse", args.share_coarse or None),
-                                               ("crop_target", args.crop_target or None),
-                                               ("loop_radius", args.loop_radius),
-                                               ("loop_search", args.loop_search), ("workers", args.workers),
-                                               ("loop_ties", None if args.loop_ties == "off" else args.loop_ties),
-                                               ("solver", args.solver),
-                                               ("audit", None if args.audit == "off" else args.audit),
-                                               ("front_end_inflation", args.front_end_inflation),
-                                               ("gate_inflation", args.gate_inflation),
-                                               ("loop_gate", None if args.loop_gate == "off" else args.loop_gate))
-                             if v is not None})
-    for field, flag in (("loop_ties", args.loop_ties), ("audit", args.audit), ("loop_gate", args.loop_gate)):
-        if flag == "off":
-            options = dataclasses.replace(options, **{field: None})
+    off = {"off": None}
+    given = {"submap_scans": ("--submap-scans", args.submap_scans), "resolution": ("--resolution", args.resolution),
+             "max_ray_length": ("--max-ray", args.max_ray), "free_margin": ("--free-margin", args.free_margin),
+             "target_refresh": ("--target-refresh", args.target_refresh),
+             "submap_frames": ("--submap-frames", args.submap_frames),
+             "share_coarse": ("--share-coarse", args.share_coarse or None),
+             "crop_target": ("--crop-target", args.crop_target or None),
+             "loop_radius": ("--loop-radius", args.loop_radius), "loop_search": ("--loop-search", args.loop_search),
+             "workers": ("--workers", args.workers), "loop_ties": ("--loop-ties", args.loop_ties),
+             "solver": ("--solver", args.solver), "audit": ("--audit", args.audit),
+             "front_end_inflation": ("--front-end-inflation", args.front_end_inflation),
+             "gate_inflation": ("--gate-inflation", args.gate_inflation), "loop_gate": ("--loop-gate", args.loop_gate)}
+    try:
+        options = SlamOptions(**{field: off.get(value, value) if isinstance(value, str) else value
+                                 for field, (_, value) in given.items() if value is not None})
+    except InvalidOptionError as exc:                 # name the flag the user typed, not the field
+        field = str(exc).split(" ", 1)[0]
+        raise InvalidOptionError(f"{given[field][0]}: {exc}" if field in given else str(exc)) from None
     front_end = {k: v for k, v in (("levels", args.front_end_levels), ("interpolation", args.front_end_lookup))
                  if v is not None}
     if front_end:

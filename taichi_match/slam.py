@@ -587,7 +587,9 @@ class SlamResult:
     timestamps : (S,) the scans' own timestamps.
     map : the global map, every scan cast at its optimised pose.
     graph, values : the gtsam factor graph and its optimised values (keys: scan k is k, submap i's
-        frame S + i).
+        frame S + i). A loop closure ``loop_gate`` took out leaves its factor's slot
+        empty: ``graph.at(i)`` is then None, and
+        ``graph.size()`` still counts the slot (``graph.nrFactors()`` does not).
     frames : (M, 3) each submap's frame in the world frame (submap i starts at scan
         i * ``submap_scans // 2``).
     scan_matches : (accepted, tried) front-end matches.

@@ -552,6 +552,20 @@ def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field,
         assert f"{field}={value!r}" in (out / "report.md").read_text()
 
 
+@pytest.mark.parametrize("args", [["--loop-gate", "-1"], ["--gate-inflation", "0"], ["--submap-scans", "3"],
+                                  ["--max-ray", "-3"], ["--resolution", "nan"], ["--loop-ties", "-2"]])
+def test_cli_slam_a_refused_value_names_its_flag(short_run, tmp_path, capsys, args):
+    """A value ``SlamOptions`` refuses is a one-line error (exit 2) that names the flag typed, before
+    any work and without a traceback."""
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    capsys.readouterr()
+    assert main(["slam", str(log_path), "--out", str(tmp_path / "out"), *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"taichi-match: error: {args[0]}: ") and "Traceback" not in err
+    assert not (tmp_path / "out" / "trajectory.tum").exists()
+
+
 def test_cli_slam_front_end_lookup_and_levels_reach_the_front_end(short_run, tmp_path, capsys):
     """``--front-end-levels`` and ``--front-end-lookup`` set the front end's ``MatchOptions`` (and
     not the loop closures'), recorded in report.md; bad values are one-line errors."""
