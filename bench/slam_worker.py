@@ -1,15 +1,15 @@
-"""The mapping loop behind a queue (``slam_thread.SlamThread``), fed as a 40 Hz laser would feed it.
+"""The mapping loop in a worker process (``slam_worker.SlamWorker``), fed as a 40 Hz laser would feed it.
 
 For each log: a plain run (``Slam.run``, whose ``add_seconds`` say how long a caller of
-``Slam.add`` would wait for each scan), then a ``SlamThread`` run whose scans this thread submits
+``Slam.add`` would wait for each scan), then a ``SlamWorker`` run whose scans this thread submits
 on a 25 ms schedule in real time (sleeping until each one's turn), as a driver's callback would.
 Per log: how late the submits were against the schedule (the caller's thread kept its period while
 the worker mapped, or not), each scan's delay from its submit to its pose, the longest backlog,
 how long after the last scan's arrival the run finished (``finish``: the last closures, the audit,
 the global map), and whether the poses are those of the plain run, bit for bit.
 
-    python bench/slam_thread.py --out bench/SLAM_THREAD.md
-    python bench/slam_thread.py --logs aces fhw --hz 20
+    python bench/slam_worker.py --out bench/SLAM_WORKER.md
+    python bench/slam_worker.py --logs aces fhw --hz 20
 """
 
 import argparse
@@ -25,7 +25,7 @@ from taichi_match.logs import read_carmen
 from taichi_match.reproduce import git_revision
 from taichi_match.simulate import simulate_log
 from taichi_match.slam import Slam
-from taichi_match.slam_thread import SlamThread
+from taichi_match.slam_worker import SlamWorker
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from slam import LOGS  # noqa: E402
@@ -33,9 +33,10 @@ from yardstick import corridor_median_ms  # noqa: E402
 
 
 def fed(log, period):
-    """A SlamThread run with ``log``'s scans submitted every ``period`` seconds: (result, submit
+    """A SlamWorker run with ``log``'s scans submitted every ``period`` seconds: (result, submit
     lateness (S,), delays (S,), longest backlog, seconds from the last arrival to the result)."""
-    mapper = SlamThread()
+    mapper = SlamWorker()
+    assert len(mapper.poses) == 0                       # waits until its process has started
     late, backlog = [], 0
     start = time.perf_counter()
     for k, scan in enumerate(log.scans):
@@ -77,14 +78,14 @@ def main():
                      f"{1e3 * late.max():.1f} | {1e3 * np.median(delays):.0f} / {1e3 * np.percentile(delays, 99):.0f} "
                      f"/ {1e3 * delays.max():.0f} | {backlog} | {tail:.2f} | {'yes' if same else 'NO'} |")
         print(lines[-1], flush=True)
-    header = (f"`python bench/slam_thread.py{' ' + ' '.join(sys.argv[1:]) if len(sys.argv) > 1 else ''}` at revision "
+    header = (f"`python bench/slam_worker.py{' ' + ' '.join(sys.argv[1:]) if len(sys.argv) > 1 else ''}` at revision "
               f"{git_revision()}, {datetime.date.today()}, the scans submitted at {args.hz:g} Hz in real time; the "
               f"machine's speed (`bench/yardstick.py`) {yard:.1f} ms before, {corridor_median_ms():.1f} ms after. "
-              f"The first scan's delay includes nothing of Taichi's compilation (done before the runs).")
+              f"Each worker's process was started (and its kernels compiled) before its first scan was due.")
     print(header)
     if args.out:
-        Path(args.out).write_text("# The mapping loop behind a queue, fed at the laser's rate\n\n" + header + "\n\n"
-                                  + "\n".join(lines) + "\n")
+        title = "# The mapping loop in a worker process, fed at the laser's rate"
+        Path(args.out).write_text(f"{title}\n\n{header}\n\n" + "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
