@@ -45,7 +45,9 @@ class Helper:
         # then warned at exit) when a helper was killed meanwhile; compiling costs it about 0.6 s
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (package, os.environ.get("PYTHONPATH")) if p),
                    TI_OFFLINE_CACHE="0")
-        code = f"from taichi_match._helper import serve; serve({down[0]}, {up[1]})"
+        # this very package first on the helper's path, ahead of its working directory's (``-c``)
+        code = (f"import sys; sys.path.insert(0, {package!r}); from taichi_match._helper import serve; "
+                f"serve({down[0]}, {up[1]})")
         try:
             process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(down[0], up[1]), env=env,
                                        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

@@ -2,23 +2,26 @@
 
 ``Slam.add`` returns once its scan is mapped: in 7-18 ms at the median on the shared logs, but a
 scan that completes a submap also waits for that submap's loop closures and an optimisation (the
-99th percentile 90-250 ms, at most 100-320 ms). A driver's callback that calls ``add`` at 40 Hz
+99th percentile 60-250 ms, at most 0.08-0.37 s). A driver's callback that calls ``add`` at 40 Hz
 stalls in those bursts. A worker thread is not enough: gtsam's optimisation holds Python's
 interpreter lock for its whole run, so every other thread of the caller stalls with it (a thread
 that fed scans at 40 Hz while a worker thread mapped fhw was held up to 108 ms, freiburg-101 up to
-112 ms; 2026-12-07).
+112 ms; 2026-12-07, docs/slam.md).
 
 ``SlamWorker`` runs ``Slam`` in a fresh interpreter (``python -c``, as ``_helper``'s helpers; POSIX
-only), fed over a pipe by a sender thread: ``submit`` checks a scan as ``Slam.add`` would, queues
-it and returns; ``latest`` gives the newest mapped scan's pose as the worker reported it; ``finish``
-waits for the queue to empty and returns the ``SlamResult``. The worker maps the scans in the order
-submitted with ``Slam.add``, and a run gives the same bits in any process, so the result is
-``Slam.run``'s on the same scans, bit for bit; only when each pose arrives depends on the machine.
-The queue is unbounded: ``backlog`` says how far the worker is behind, for a caller that would
-rather skip scans. Measured feeding each shared log at 40 Hz: ``bench/slam_worker.py``.
+only), fed over a pipe by a sender thread, while a reader thread takes what the worker says:
+``submit`` checks a scan as ``Slam.add`` would, queues it and returns; ``latest`` gives the newest
+mapped scan's pose; ``finish`` waits for the queue to empty and returns the ``SlamResult``. The
+worker maps the scans in the order submitted with ``Slam.add``, and a run gives the same bits in
+any process, so the result is ``Slam.run``'s on the same scans, bit for bit (with the package's own
+Taichi settings: a host that called ``ti.init`` itself with others, ``fast_math=False`` say, has
+them in its own process only). Only when each pose arrives depends on the machine. The queue is
+unbounded: ``backlog`` says how far the worker is behind, for a caller that would rather skip
+scans. Measured feeding each shared log at 40 Hz: ``bench/slam_worker.py``.
 """
 
 import os
+import pickle
 import queue
 import signal
 import subprocess
@@ -37,8 +40,7 @@ from .slam import Slam, SlamOptions, SlamResult, _checked_scan
 
 __all__ = ["SlamWorker"]
 
-_CLOSED = ("closed",)                          # the reader's last word to a waiting caller
-STOP_SECONDS = 10.0                            # a worker not gone this long after SIGTERM is killed
+STOP_SECONDS = 10.0            # a worker not gone this long after SIGTERM is killed
 
 
 class SlamWorker:
@@ -54,9 +56,16 @@ class SlamWorker:
     Raises
     ------
     InvalidOptionError
-        For options ``Slam`` refuses.
+        For options ``Slam`` refuses, or that cannot be sent to another process (a value of a
+        class defined in the calling script).
     SlamRunError
         When the worker process cannot start (not POSIX, or the interpreter failed).
+
+    Notes
+    -----
+    The methods may be called from several threads; ``submit``'s checks and queueing are one step,
+    so the indices it returns are those of the scans' order in the run. A worker process that is
+    stopped (SIGSTOP) is waited for; one that ends is an error for every call after it.
 
     Examples
     --------
@@ -74,92 +83,97 @@ class SlamWorker:
     def __init__(self, options: Optional[SlamOptions] = None, **overrides):
         self._checker = Slam(options, **overrides)          # checks the options and each scan
         self.options = self._checker.options
+        try:
+            sent = pickle.dumps(self.options)
+        except Exception as exc:                             # noqa: BLE001 - any pickling failure
+            raise InvalidOptionError(f"the options cannot be sent to the worker process: {exc}") from None
+        if b"__main__" in sent:
+            raise InvalidOptionError("an option's value is of a class defined in the calling script (__main__), "
+                                     "which the worker process cannot load: give plain numbers")
         if os.name != "posix":
             raise SlamRunError("SlamWorker needs POSIX (its worker is a process fed through inherited pipes); "
                                "use Slam.add")
-        self._process, self._to, self._from = _start()
-        self._finalizer = weakref.finalize(self, _end, self._process, self._to, self._from)
-        self._outgoing = queue.SimpleQueue()                 # messages for the sender thread
-        self._replies = queue.SimpleQueue()                  # answers to poses, current_map and finish
-        self._lock = threading.Lock()                        # the fields below, caller and reader
-        self._submitted = 0
+        self._link = _Link(self.options)
+        # the link holds no reference to this object: one dropped without close() is collected,
+        # and this stops its process and threads
+        self._finalizer = weakref.finalize(self, self._link.stop)
+        self._submitting = threading.Lock()                  # submit's checks and queueing, close
+        self._asking = threading.Lock()                      # one question to the worker at a time
         self._last = None                 # (timestamp, odometry pose) of the last scan submitted
-        self._latest = None               # (index, pose) of the newest scan mapped
-        self._error = None                # why the worker stopped, for the caller
-        self._arrived, self._mapped = [], []                 # time.perf_counter() of each submit, mapping
-        self._state = "running"                              # then "finished" or "closed"
-        self._outgoing.put(("options", self.options))
-        self._threads = [threading.Thread(target=target, name=f"taichi-match slam {name}", daemon=True)
-                         for target, name in ((self._send, "sender"), (self._read, "reader"))]
-        for thread in self._threads:
-            thread.start()
+        self._owed = None                 # (id, kind) of a question whose wait was interrupted
+        self._questions = 0
+        self._state = "running"           # then "finished" or "closed"
 
     def submit(self, scan: Scan) -> int:
         """Queue ``scan`` for mapping (its ``pose`` read as odometry; scans in time order) and
         return its index at once. The scan is checked here as ``Slam.add`` checks it:
         InvalidOptionError for a scan ``Slam.add`` refuses (nothing is queued; the run goes on);
         SlamRunError once the worker has stopped on an error, or after ``finish`` or ``close``."""
-        self._check_running()
-        checked = _checked_scan(scan)
-        k = self._submitted
-        if self._last is not None:
-            if not checked.timestamp > self._last[0]:
-                raise InvalidOptionError(f"the scans' timestamps must increase (the trajectory's TUM file pairs poses "
-                                         f"by time): scan {k} at {checked.timestamp!r} after {self._last[0]!r}")
-            self._checker._check_step(k, self._last[1], checked.pose)
-        self._last = (checked.timestamp, checked.pose)
-        with self._lock:
-            self._arrived.append(time.perf_counter())
-        self._submitted = k + 1
-        self._outgoing.put(("scan", checked))
-        return k
+        with self._submitting:
+            self._check_running()
+            checked = _checked_scan(scan)
+            k = self._link.submitted
+            if self._last is not None:
+                if not checked.timestamp > self._last[0]:
+                    raise InvalidOptionError(f"the scans' timestamps must increase (the trajectory's TUM file pairs "
+                                             f"poses by time): scan {k} at {checked.timestamp!r} after "
+                                             f"{self._last[0]!r}")
+                self._checker._check_step(k, self._last[1], checked.pose)
+            self._link.submit(checked)
+            self._last = (checked.timestamp, checked.pose)
+            return k
 
     def latest(self) -> Optional[Tuple[int, np.ndarray]]:
         """(index, pose): the newest mapped scan and its pose in the world frame as estimated when it
         was mapped (``Slam.add``'s return); None before the first. Never waits for the worker."""
-        with self._lock:
-            return None if self._latest is None else (self._latest[0], self._latest[1].copy())
+        with self._link.heard:
+            latest = self._link.latest
+        return None if latest is None else (latest[0], latest[1].copy())
 
     @property
     def backlog(self) -> int:
         """Scans submitted and not yet reported mapped."""
-        with self._lock:
-            return self._submitted - len(self._mapped)
+        with self._link.heard:
+            return self._link.submitted - len(self._link.mapped)
 
     @property
     def delays(self) -> np.ndarray:
         """(M,) seconds from each mapped scan's ``submit`` to its pose arriving here."""
-        with self._lock:
-            return np.array(self._mapped) - np.array(self._arrived[:len(self._mapped)])
+        with self._link.heard:
+            mapped, arrived = list(self._link.mapped), self._link.arrived[:len(self._link.mapped)]
+        return np.array(mapped) - np.array(arrived)
 
     @property
     def poses(self) -> np.ndarray:
         """(S, 3) the current estimates of the scans submitted so far (waits until they are mapped)."""
-        return self._ask(("poses",))
+        return self._ask("poses")
 
     def current_map(self):
         """The map of the scans submitted so far (``Slam.current_map``; waits until they are mapped)."""
-        return self._ask(("map",))
+        return self._ask("map")
 
     def finish(self) -> SlamResult:
         """Wait until every submitted scan is mapped, then end the run (``Slam.finish``: the last loop
         closures, optimisation, audit and global map) and the worker. ``Slam.finish``'s refusals
         (InvalidOptionError: no scan, no usable beam, no odometry) leave the run going, as there;
-        SlamRunError when the worker stopped on an error."""
-        result = self._ask(("finish",))
-        self._state = "finished"
+        SlamRunError when the worker stopped on an error. A wait interrupted (KeyboardInterrupt)
+        leaves the run's end under way: calling ``finish`` again takes its result."""
+        result = self._ask("finish")
+        with self._submitting:
+            self._state = "finished"
         try:                                   # it ends by itself once it has answered
-            self._process.wait(STOP_SECONDS)
-        except subprocess.TimeoutExpired:      # pragma: no cover - _end stops it
+            self._link.process.wait(STOP_SECONDS)
+        except subprocess.TimeoutExpired:      # pragma: no cover - stop() ends it
             pass
-        self._end()
+        self._finalizer()
         return result
 
     def close(self) -> None:
         """Stop the worker at once (the queue's scans are dropped) and end the run without a result."""
-        if self._state == "running":
-            self._state = "closed"
-        self._end()
+        with self._submitting:
+            if self._state == "running":
+                self._state = "closed"
+        self._finalizer()
 
     def __enter__(self) -> "SlamWorker":
         return self
@@ -167,20 +181,94 @@ class SlamWorker:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _ask(self, message):
-        """Send ``message`` after the scans queued before it, and wait for the worker's answer."""
-        self._check_running()
-        self._outgoing.put(message)
-        answer = self._replies.get()
-        if answer[0] == "refused":
-            raise InvalidOptionError(answer[1])
-        if answer[0] == "error":
-            raise SlamRunError(f"the mapping worker failed: {answer[1]}")
-        if answer is _CLOSED:
-            self._replies.put(_CLOSED)                       # for the next one who asks
+    def _ask(self, kind):
+        """Ask the worker for ``kind`` after the scans queued before, and wait for its answer."""
+        with self._asking:
+            owed = self._owed
+            if owed is not None and owed[1] == kind == "finish":
+                if self._state != "running":             # its answer may be here, the worker ended
+                    self._check_running()
+            else:
+                self._check_running()
+            if owed is not None and owed[1] == "finish" and kind != "finish":
+                raise SlamRunError("a finish() was interrupted while the run ended: call finish() again for its "
+                                   "result")
+            if owed is not None and owed[1] == kind == "finish":
+                number = owed[0]                         # its answer is on the way, or here
+            else:
+                number = self._questions
+                self._questions += 1
+                self._link.send(("ask", number, kind))
+            self._owed = (number, kind)
+            answer = self._link.answer(number)           # a KeyboardInterrupt here leaves it owed
+            self._owed = None
+        if answer is None:
             self._check_running()
-            raise SlamRunError("the mapping process ended")  # pragma: no cover - _check_running raised
-        return answer[1]
+            raise SlamRunError("the mapping worker ended")  # pragma: no cover - _check_running raised
+        what, value = answer
+        if what == "refused":
+            raise InvalidOptionError(value)
+        if what == "error":
+            self._link.fail(value)
+            raise SlamRunError(f"the mapping worker stopped: {value}")
+        return value
+
+    def _check_running(self):
+        if self._state != "running":
+            raise SlamRunError(f"this SlamWorker is {self._state}: start a new one")
+        with self._link.heard:
+            error = self._link.error
+        if error is not None:
+            raise SlamRunError(f"the mapping worker stopped {error}")
+
+
+class _Link:
+    """The caller's end of one worker process: the process, the pipes, the sender thread that
+    writes the queued messages and the reader thread that takes the worker's, and what it said.
+    It holds no reference to its ``SlamWorker``."""
+
+    def __init__(self, options):
+        self.process, self._to, self._from = _start()
+        self._outgoing = queue.SimpleQueue()
+        self.heard = threading.Condition()       # the fields below, between the threads
+        self.submitted = 0
+        self.arrived, self.mapped = [], []       # time.perf_counter() of each submit and mapping
+        self.latest = None                       # (index, pose) of the newest scan mapped
+        self.error = None                        # why the worker stopped, for the caller
+        self._answers = {}                       # question number -> (kind, value)
+        self._ended = False                      # the worker's pipe closed
+        self._broken = False                     # a message could not be sent: no answer will come
+        self._stopped = False
+        self._outgoing.put(("options", options))
+        self._threads = [threading.Thread(target=target, name=f"taichi-match slam {name}", daemon=True)
+                         for target, name in ((self._send, "sender"), (self._read, "reader"))]
+        for thread in self._threads:
+            thread.start()
+
+    def submit(self, scan):
+        with self.heard:
+            self.arrived.append(time.perf_counter())
+            self.submitted += 1
+        self._outgoing.put(("scan", scan))
+
+    def send(self, message):
+        self._outgoing.put(message)
+
+    def answer(self, number):
+        """The worker's answer to question ``number`` ((kind, value)), or None once it has ended;
+        answers to older questions (whose waits were interrupted) are dropped."""
+        with self.heard:
+            while number not in self._answers and not self._ended and not self._broken:
+                self.heard.wait()
+            for older in [n for n in self._answers if n < number]:
+                del self._answers[older]
+            return self._answers.pop(number, None)
+
+    def fail(self, why):
+        with self.heard:
+            if self.error is None:
+                self.error = why
+            self.heard.notify_all()
 
     def _send(self):
         while True:
@@ -189,58 +277,77 @@ class SlamWorker:
                 return
             try:
                 self._to.send(message)
-            except (OSError, ValueError):                    # the worker is gone: the reader says why
+            except OSError:                      # the pipe broke: the worker ended, as the reader says
+                return
+            except Exception as exc:             # noqa: BLE001 - a message that would not go: no answer will come
+                why = f"because a message could not be sent to it ({type(exc).__name__}: {exc})"
+                with self.heard:
+                    self.error = self.error or why
+                    self._broken = True
+                    self.heard.notify_all()
                 return
 
     def _read(self):
         while True:
             try:
                 message = self._from.recv()
-            except (EOFError, OSError):
+            except Exception:                    # noqa: BLE001 - EOF: the worker ended, or the pipe was closed
                 break
-            kind = message[0]
-            with self._lock:
-                if kind == "mapped":
-                    self._latest = (len(self._mapped), message[1])
-                    self._mapped.append(time.perf_counter())
-                    continue
-                if kind == "failed":
-                    self._error = f"at scan {len(self._mapped)}: {message[1]}"
-                    continue
-            self._replies.put(message)                       # poses, map, finish, refused, error
-        with self._lock:
-            if self._error is None and self._state == "running":
-                code = self._process.poll()
-                self._error = f"because its process ended{'' if code is None else f' (exit status {code})'}"
-        self._replies.put(_CLOSED)
+            with self.heard:
+                if message[0] == "mapped":
+                    self.latest = (len(self.mapped), message[1])
+                    self.mapped.append(time.perf_counter())
+                elif message[0] == "failed":
+                    self.error = self.error or f"at scan {len(self.mapped)}: {message[1]}"
+                else:                            # ("answer", number, kind, value)
+                    self._answers[message[1]] = message[2:]
+                self.heard.notify_all()
+        try:
+            code = self.process.wait(1.0)
+        except subprocess.TimeoutExpired:
+            code = None
+        with self.heard:
+            self._ended = True
+            if self.error is None and not self._stopped:
+                self.error = f"because its process ended{'' if code is None else f' (exit status {code})'}"
+            self.heard.notify_all()
 
-    def _end(self):
-        self._outgoing.put(None)
-        self._finalizer()
+    def stop(self):
+        """Stop the worker (SIGTERM, so that Taichi releases its offline cache at exit; SIGKILL
+        after ``STOP_SECONDS``), then the threads, and close the pipes. A second call does nothing."""
+        if self._stopped:
+            return
+        self._stopped = True
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.send_signal(signal.SIGCONT)      # a stopped worker takes its SIGTERM now
+            except OSError:                                   # pragma: no cover - it ended meanwhile
+                pass
+        try:
+            self.process.wait(STOP_SECONDS)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        self._outgoing.put(None)                 # the sender ends (a write under way failed: the pipe broke)
         for thread in self._threads:
             thread.join()
-
-    def _check_running(self):
-        if self._state != "running":
-            raise SlamRunError(f"this SlamWorker is {self._state}: start a new one")
-        with self._lock:
-            error = self._error
-        if error is not None:
-            raise SlamRunError(f"the mapping worker stopped {error}")
+        for conn in (self._to, self._from):
+            conn.close()
 
 
 def _start():
     """The worker process and its two pipe ends (to it, from it)."""
     down, up = os.pipe(), os.pipe()                  # (read, write) to the worker, from it
     package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    # the package importable (as for _helper's helpers); Taichi with its offline cache, as in the
-    # caller: compiling anew cost a run 0.1-0.5 s at each of the kernels' first uses that the warm-up
-    # did not reach (orebro: 1.3 s in all), so the worker is stopped by SIGTERM (``_end``), which lets
-    # Taichi release the cache's lock at exit, where a killed process left it held
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (package, os.environ.get("PYTHONPATH")) if p))
-    code = f"from taichi_match.slam_worker import _serve; _serve({down[0]}, {up[1]})"
+    # this very package first on the worker's path, ahead of its working directory's (``-c``);
+    # Taichi with its offline cache, as in the caller: compiling anew cost a run 0.1-0.5 s at each
+    # of the kernels' first uses that the warm-up did not reach (orebro: 1.3 s in all), so the
+    # worker is stopped by SIGTERM, which lets Taichi release the cache's lock at exit
+    code = (f"import sys; sys.path.insert(0, {package!r}); from taichi_match.slam_worker import _serve; "
+            f"_serve({down[0]}, {up[1]})")
     try:
-        process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(down[0], up[1]), env=env,
+        process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(down[0], up[1]), start_new_session=True,
                                    stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError as exc:
         for fd in (*down, *up):
@@ -251,56 +358,50 @@ def _start():
     return process, Connection(down[1], readable=False), Connection(up[0], writable=False)
 
 
-def _end(process, to, came):
-    """Close the pipes and stop the worker process: SIGTERM (it exits as from an error, Taichi
-    releasing its offline cache), and after ``STOP_SECONDS`` SIGKILL."""
-    for conn in (to, came):
-        try:
-            conn.close()
-        except OSError:
-            pass
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(STOP_SECONDS)
-        except subprocess.TimeoutExpired:
-            process.kill()
-    process.wait()
-
-
 def _serve(down: int, up: int):
-    """The worker's side: read the options, then map each "scan" with ``Slam.add`` and report its
-    pose (after ``_warm_up``); answer "poses", "map" and "finish" in turn, each with its value, "refused" (the run goes
-    on) or "error". An error in ``add`` is reported once ("failed"), and the scans after it are
-    dropped."""
+    """The worker's side: read the options and warm up (``_warm_up``), then map each "scan" with
+    ``Slam.add`` and report its pose, and answer each question ("poses", "map", "finish") with its
+    value, "refused" (``Slam``'s InvalidOptionError: the run goes on) or "error". After an error
+    the scans are dropped and every question is answered with it. SIGINT is the caller's: the
+    worker runs in a session of its own (a terminal's Ctrl-C does not reach it) and ignores one
+    sent to it, so that a caller that catches Ctrl-C can still finish the run."""
     signal.signal(signal.SIGTERM, _exit)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     inbox, outbox = Connection(down, writable=False), Connection(up, readable=False)
     try:
-        _, options = inbox.recv()
+        try:
+            _, options = inbox.recv()
+        except (EOFError, OSError):
+            return
+        except Exception as exc:                 # noqa: BLE001 - reported, then the worker ends
+            outbox.send(("failed", f"its options could not be read ({type(exc).__name__}: {exc})"))
+            return
         _warm_up(options)
-        slam, failed = Slam(options), False
+        slam, failed = Slam(options), None
+        asked = {"poses": lambda: slam.poses, "map": slam.current_map, "finish": slam.finish}
         while True:
             message = inbox.recv()
-            kind = message[0]
-            if kind == "scan":
-                if failed:
-                    continue
-                try:
-                    pose = slam.add(message[1])
-                except Exception as exc:             # reported; the scans after it are dropped
-                    failed = True
-                    outbox.send(("failed", f"{type(exc).__name__}: {exc}"))
-                else:
-                    outbox.send(("mapped", pose))
+            if message[0] == "scan":
+                if failed is None:
+                    try:
+                        outbox.send(("mapped", slam.add(message[1])))
+                    except Exception as exc:     # noqa: BLE001 - reported; the scans after it are dropped
+                        failed = f"{type(exc).__name__}: {exc}"
+                        outbox.send(("failed", failed))
+                continue
+            _, number, kind = message
+            if failed is not None:
+                outbox.send(("answer", number, "error", failed))
                 continue
             try:
-                answer = {"poses": lambda: slam.poses, "map": slam.current_map, "finish": slam.finish}[kind]()
+                value = asked[kind]()
             except InvalidOptionError as exc:
-                outbox.send(("refused", str(exc)))
-            except Exception as exc:
-                outbox.send(("error", f"{type(exc).__name__}: {exc}"))
+                outbox.send(("answer", number, "refused", str(exc)))
+            except Exception as exc:             # noqa: BLE001 - reported; the run is over
+                failed = f"{type(exc).__name__}: {exc}"
+                outbox.send(("answer", number, "error", failed))
             else:
-                outbox.send((kind, answer))
+                outbox.send(("answer", number, kind, value))
                 if kind == "finish":
                     return
     except (EOFError, OSError):
@@ -319,5 +420,5 @@ def _warm_up(options):
 
     try:
         Slam(options).run(simulate_log(1, laps=1.1).log)
-    except Exception:                        # noqa: BLE001 - the real run will say what is wrong
+    except Exception:                            # noqa: BLE001 - the real run will say what is wrong
         pass

@@ -96,7 +96,7 @@ def test_a_worker_that_dies_is_an_error_for_the_caller(scans):
     mapper = SlamWorker()
     for scan in scans[:5]:
         mapper.submit(scan)
-    os.kill(mapper._process.pid, signal.SIGKILL)
+    os.kill(mapper._link.process.pid, signal.SIGKILL)
     with pytest.raises(SlamRunError, match="process ended"):
         mapper.finish()
     with pytest.raises(SlamRunError, match="process ended"):
@@ -112,7 +112,7 @@ def test_after_finish_or_close_nothing_more_is_taken(scans):
     mapper = SlamWorker()
     for scan in scans[:12]:
         mapper.submit(scan)
-    process = mapper._process
+    process = mapper._link.process
     mapper.close()
     mapper.close()
     assert process.poll() is not None
@@ -138,3 +138,102 @@ def test_the_readme_worker_example_runs():
     exec(compile(block, "README.md", "exec"), scope)
     assert len(scope["result"].poses) == len(scope["scans"])
     assert scope["mapper"].latest()[0] == len(scope["scans"]) - 1
+
+
+def test_threads_that_submit_and_ask_at_once_get_their_own_answers(scans, plain):
+    """Four threads submitting (the checks and the queueing are one step: each index is a scan's
+    place in the run, a scan out of time order is refused) while another asks for the poses and
+    the main thread finishes: every answer is the asker's own, and the result holds every scan
+    taken."""
+    import threading
+
+    taken, refused, answers = [], [], []
+    with SlamWorker() as mapper:
+        def feed(part):
+            for scan in part:
+                try:
+                    taken.append((mapper.submit(scan), scan.timestamp))
+                except InvalidOptionError:
+                    refused.append(scan.timestamp)
+
+        def ask():
+            for _ in range(5):
+                try:
+                    answers.append(type(mapper.poses).__name__)
+                except SlamRunError:               # finish came first
+                    answers.append("finished")
+
+        feeders = [threading.Thread(target=feed, args=(scans[i::4],)) for i in range(4)]
+        asker = threading.Thread(target=ask)
+        for thread in feeders + [asker]:
+            thread.start()
+        for thread in feeders:
+            thread.join()
+        result = mapper.finish()
+        asker.join()
+    indices = sorted(k for k, _ in taken)
+    assert indices == list(range(len(taken))) and len(taken) + len(refused) == len(scans)
+    stamps = [t for _, t in sorted(taken)]
+    assert stamps == sorted(stamps) and len(result.poses) == len(taken)
+    assert set(answers) <= {"ndarray", "finished"}
+
+
+def test_options_the_worker_could_not_load_are_refused_at_once():
+    """An option value that cannot be pickled, or whose class the worker's interpreter cannot
+    import (defined in the calling script), is an InvalidOptionError before any process starts."""
+    from taichi_match.slam import SlamOptions
+
+    default = np.array(SlamOptions().odometry_sd)
+    with pytest.raises(InvalidOptionError, match="cannot be sent"):
+        SlamWorker(odometry_sd=memoryview(default))
+
+    class Metres(float):
+        pass
+
+    Metres.__module__, Metres.__qualname__ = "__main__", "Metres"
+    import __main__
+
+    __main__.Metres = Metres
+    try:
+        with pytest.raises(InvalidOptionError, match="__main__"):
+            SlamWorker(resolution=Metres(0.05))
+    finally:
+        del __main__.Metres
+
+
+def test_the_worker_ignores_ctrl_c_and_its_callers_working_directory(scans, plain, tmp_path, monkeypatch):
+    """A terminal's Ctrl-C reaches the whole process group: the worker ignores SIGINT, so a caller
+    that catches it can still finish. A ``taichi_match`` in the caller's working directory does not
+    shadow the package in the worker (it would raise on import)."""
+    _, result = plain
+    shadow = tmp_path / "taichi_match"
+    shadow.mkdir()
+    (shadow / "__init__.py").write_text("raise ImportError('a shadowing package was imported')\n")
+    monkeypatch.chdir(tmp_path)
+    with SlamWorker() as mapper:
+        assert len(mapper.poses) == 0                     # the worker is up
+        for scan in scans:
+            mapper.submit(scan)
+        os.kill(mapper._link.process.pid, signal.SIGINT)
+        assert np.array_equal(mapper.finish().poses, result.poses)
+
+
+def test_a_worker_dropped_without_close_is_stopped(scans, capfd):
+    """A SlamWorker no longer referenced (never closed) is collected: its process ends. Closing one
+    with a backlog of scans under way prints nothing (no thread's traceback)."""
+    import gc
+
+    mapper = SlamWorker()
+    process = mapper._link.process
+    for scan in scans[:10]:
+        mapper.submit(scan)
+    del mapper
+    gc.collect()
+    assert process.wait(30) is not None
+    busy = SlamWorker()
+    big = [dataclasses.replace(scan, ranges=np.tile(scan.ranges, 50),
+                               angles=np.linspace(-1.5, 1.5, 50 * len(scan.ranges))) for scan in scans[:30]]
+    for scan in big:
+        busy.submit(scan)
+    busy.close()
+    assert "Traceback" not in capfd.readouterr().err
