@@ -331,7 +331,8 @@ class _Link:
             self.process.wait()
         self._outgoing.put(None)                 # the sender ends (a write under way failed: the pipe broke)
         for thread in self._threads:
-            thread.join()
+            if thread is not threading.current_thread():  # (a collection may run the finalizer in one)
+                thread.join()
         for conn in (self._to, self._from):
             conn.close()
 
