@@ -96,7 +96,26 @@ def taichi():
                         log_level=ti.WARN, **cache)
             if _STATE["threads"] is None and os.environ.get("TAICHI_MATCH_PIN_THREADS", "1") != "0":
                 _pin_threads(sorted(_thread_ids() - before))
+        _materialize(ti.lang.impl.get_runtime())          # (ti.init made a new runtime)
         return ti
+
+
+def _materialize(runtime):
+    """Taichi's root fields made now, in this thread: Taichi 1.7 makes them on its first compile
+    and asserts that this happens in the thread that called ``ti.init`` (``llvm_context.cpp``:
+    ``this_thread::get_id() == main_thread_id_``), so a first match from another thread, a ROS
+    executor's say, failed with Taichi's RuntimeError. Once made, any thread may compile. A host
+    that started Taichi itself in another thread, compiling nothing there, gets ``EngineError``."""
+    if getattr(runtime, "materialized", True):
+        return
+    try:
+        runtime.materialize()
+    except RuntimeError as exc:
+        if "main_thread_id" not in str(exc):
+            raise
+        raise EngineError("Taichi was started (ti.init) in another thread and has compiled nothing yet; Taichi "
+                          "makes its first compile in that thread only: run a first match there (or call "
+                          "taichi.lang.impl.get_runtime().materialize() there after ti.init)") from None
 
 
 def kernels(build):

@@ -310,3 +310,34 @@ def test_row_spread_gives_enough_items_to_spread(rows):
 
     spread = row_spread(rows)
     assert rows * len(spread) >= ROW_ITEMS and (len(spread) == 1 or rows * (len(spread) - 1) < ROW_ITEMS)
+
+
+@pytest.mark.parametrize("start, expected", [
+    ("import taichi_match._taichi as tt; tt.taichi()", "accepted True"),     # ours, in the main thread
+    ("", "accepted True"),                                                    # ours, started in the thread
+    ("import taichi as ti; ti.init(arch=ti.cpu, log_level=ti.WARN)", "EngineError: Taichi was started"),
+])
+def test_the_first_match_may_come_from_another_thread(start, expected):
+    """Taichi 1.7 asserts that its first compile runs in the thread that called ``ti.init``. With
+    Taichi started by the package in the main thread, a first match from another thread (a ROS
+    executor's) works; with Taichi started by the host there and nothing compiled yet, it is an
+    EngineError that says what to do, not Taichi's RuntimeError. A fresh interpreter each."""
+    code = textwrap.dedent(f"""
+        import threading
+        {start}
+        from taichi_match import EngineError, Matcher
+        from taichi_match.scenes import room
+        out = []
+        def work():
+            try:
+                grid = room()
+                out.append(f"accepted {{Matcher().match(grid, grid, (0.05, 0.0, 0.0)).accepted}}")
+            except EngineError as exc:
+                out.append(f"EngineError: {{exc}}")
+        thread = threading.Thread(target=work)
+        thread.start()
+        thread.join()
+        print(out[0])
+    """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and expected in done.stdout, (done.stdout, done.stderr[-2000:])
