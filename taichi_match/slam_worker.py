@@ -184,18 +184,16 @@ class SlamWorker:
     def _ask(self, kind):
         """Ask the worker for ``kind`` after the scans queued before, and wait for its answer."""
         with self._asking:
-            owed = self._owed
-            if owed is not None and owed[1] == kind == "finish":
-                if self._state != "running":             # its answer may be here, the worker ended
-                    self._check_running()
-            else:
-                self._check_running()
-            if owed is not None and owed[1] == "finish" and kind != "finish":
+            resuming = self._owed is not None and self._owed[1] == "finish"
+            if resuming and kind != "finish":
                 raise SlamRunError("a finish() was interrupted while the run ended: call finish() again for its "
                                    "result")
-            if owed is not None and owed[1] == kind == "finish":
-                number = owed[0]                         # its answer is on the way, or here
+            if resuming:                                 # its answer is on the way, or here (the worker ended)
+                if self._state != "running":
+                    self._check_running()
+                number = self._owed[0]
             else:
+                self._check_running()
                 number = self._questions
                 self._questions += 1
                 self._link.send(("ask", number, kind))
