@@ -19,7 +19,7 @@ import sys
 from multiprocessing.connection import Connection
 from typing import Optional
 
-__all__ = ["Helper", "serve"]
+__all__ = ["Helper", "serve", "start_interpreter"]
 
 
 class Helper:
@@ -38,26 +38,14 @@ class Helper:
     def start(cls, options) -> Optional["Helper"]:
         if os.name != "posix":
             return None
-        down, up = os.pipe(), os.pipe()            # (read, write) to the helper, from it
-        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         # Taichi without its offline cache: the cache's lock file, taken while the cache is read
         # at the start and written at exit, stayed locked for every later Taichi process (each
         # then warned at exit) when a helper was killed meanwhile; compiling costs it about 0.6 s
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (package, os.environ.get("PYTHONPATH")) if p),
-                   TI_OFFLINE_CACHE="0")
-        # this very package first on the helper's path, ahead of its working directory's (``-c``)
-        code = (f"import sys; sys.path.insert(0, {package!r}); from taichi_match._helper import serve; "
-                f"serve({down[0]}, {up[1]})")
         try:
-            process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(down[0], up[1]), env=env,
-                                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            process, inbox, outbox = start_interpreter("taichi_match._helper", "serve", TI_OFFLINE_CACHE="0")
         except OSError:
-            for fd in (*down, *up):
-                os.close(fd)
             return None
-        os.close(down[0])
-        os.close(up[1])
-        helper = cls(process, Connection(down[1], readable=False), Connection(up[0], writable=False), options)
+        helper = cls(process, inbox, outbox, options)
         helper._post(("options", options))
         return helper
 
@@ -130,6 +118,30 @@ class Helper:
         if self._process.poll() is None:             # it keeps nothing worth a graceful end
             self._process.kill()
         self._process.wait()
+
+
+def start_interpreter(module: str, function: str, *, new_session: bool = False, **env):
+    """A fresh interpreter (``python -c``; not ``multiprocessing``, which would run the caller's
+    main script again in it) running ``module.function(read_fd, write_fd)`` on a pair of inherited
+    pipes, this package first on its path (ahead of its working directory's), ``env`` added to its
+    environment, its stdio going nowhere (Taichi prints); ``new_session``: in a session of its own
+    (a terminal's Ctrl-C does not reach it). Returns (process, Connection to it, Connection from
+    it); raises OSError when it cannot start. POSIX."""
+    down, up = os.pipe(), os.pipe()            # (read, write) to it, from it
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    code = (f"import sys; sys.path.insert(0, {package!r}); from {module} import {function}; "
+            f"{function}({down[0]}, {up[1]})")
+    try:
+        process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(down[0], up[1]), env=dict(os.environ, **env),
+                                   start_new_session=new_session, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
+    except OSError:
+        for fd in (*down, *up):
+            os.close(fd)
+        raise
+    os.close(down[0])
+    os.close(up[1])
+    return process, Connection(down[1], readable=False), Connection(up[0], writable=False)
 
 
 def serve(down: int, up: int):

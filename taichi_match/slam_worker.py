@@ -25,7 +25,6 @@ import pickle
 import queue
 import signal
 import subprocess
-import sys
 import threading
 import time
 import weakref
@@ -35,6 +34,7 @@ from typing import Optional, Tuple
 import numpy as np
 
 from ._errors import InvalidOptionError, SlamRunError
+from ._helper import start_interpreter
 from .logs import Scan
 from .slam import Slam, SlamOptions, SlamResult, _checked_scan
 
@@ -336,25 +336,14 @@ class _Link:
 
 
 def _start():
-    """The worker process and its two pipe ends (to it, from it)."""
-    down, up = os.pipe(), os.pipe()                  # (read, write) to the worker, from it
-    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    # this very package first on the worker's path, ahead of its working directory's (``-c``);
-    # Taichi with its offline cache, as in the caller: compiling anew cost a run 0.1-0.5 s at each
-    # of the kernels' first uses that the warm-up did not reach (orebro: 1.3 s in all), so the
-    # worker is stopped by SIGTERM, which lets Taichi release the cache's lock at exit
-    code = (f"import sys; sys.path.insert(0, {package!r}); from taichi_match.slam_worker import _serve; "
-            f"_serve({down[0]}, {up[1]})")
+    """The worker process and its two pipe ends (to it, from it), in a session of its own.
+    Taichi keeps its offline cache, as in the caller: compiling anew cost a run 0.1-0.5 s at each
+    of the kernels' first uses that the warm-up did not reach (orebro: 1.3 s in all), so the worker
+    is stopped by SIGTERM, which lets Taichi release the cache's lock at exit."""
     try:
-        process = subprocess.Popen([sys.executable, "-c", code], pass_fds=(down[0], up[1]), start_new_session=True,
-                                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return start_interpreter("taichi_match.slam_worker", "_serve", new_session=True)
     except OSError as exc:
-        for fd in (*down, *up):
-            os.close(fd)
         raise SlamRunError(f"the mapping worker could not start: {exc}") from None
-    os.close(down[0])
-    os.close(up[1])
-    return process, Connection(down[1], readable=False), Connection(up[0], writable=False)
 
 
 def _serve(down: int, up: int):
