@@ -162,7 +162,7 @@ def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls,
         if h and w:
             with kernel_lock():
                 envelope = _SCRATCH.get("envelope", (h * w,), np.float64)
-                launch(kernels(_build_conflict)[1], (*runs, table, envelope, out.reshape(-1)), coded)
+                launch(kernels(_build_conflict)[1], (*runs, table, envelope, out.reshape(-1), _CODED[coded]))
         return out, None
     dtype = next(t for t in (np.uint8, np.uint16, np.uint32) if reach * reach < np.iinfo(t).max)
     distances = np.empty((h, w), dtype=dtype)
@@ -189,6 +189,10 @@ def _stamp_tables(reach: int, ratio: float):
     for array in (profile, costs, table):
         array.setflags(write=False)
     return profile, costs, table, bool(np.all(np.diff(profile) <= 0))
+
+
+# ``weighted``'s flag, an array read at run time: ``prob`` is a table of the codes' probabilities
+_CODED = {False: np.zeros(1, dtype=np.int32), True: np.ones(1, dtype=np.int32)}
 
 
 def _build_conflict(ti):
@@ -221,10 +225,10 @@ def _build_conflict(ti):
         return lo, hi
 
     @ti.func
-    def p_at(prob: ti.template(), known: ti.template(), c, coded: ti.template()):
+    def p_at(prob: ti.template(), known: ti.template(), c, coded):
         # the probability of cell c: its own, or its code's (``known`` then holds the codes)
         p = ti.f64(0.0)
-        if ti.static(coded):
+        if coded:
             p = prob[ti.cast(known[c], ti.i32)]
         else:
             p = prob[c]
@@ -266,13 +270,17 @@ def _build_conflict(ti):
     def weighted(rows_: i32, starts: i32, ends: i32, weights: f64, first: i32, half: i32, spread: i32,
                  known: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64,
                  table: ti.types.ndarray(dtype=ti.f64, ndim=2), envelope: f64,
-                 out: ti.types.ndarray(dtype=ti.f32, ndim=1), coded: ti.template()):
+                 out: ti.types.ndarray(dtype=ti.f32, ndim=1), mode: i32):
         # grey walls: the envelope's maximum per cell (weight * ``table[row offset, column
-        # offset]``, the profile at that squared distance), then the values from it
+        # offset]``, the profile at that squared distance), then the values from it. ``coded``
+        # is read at run time, not a template argument: one variant for Taichi to load in a
+        # process (0.1-0.15 s from its offline cache), and the front end's preparations took the
+        # same time (ratios 0.99-1.02, ``bench/ab_front_end.py --captured``, 2026-12-07)
         h = first.shape[0] - 1
         w = known.shape[0] // h
         width = w + 2 * PAD
         reach = (half.shape[0] - 1) // 2
+        coded = mode[0] != 0
         for i, part in ti.ndrange(h, spread.shape[0]):
             if part == 0:
                 cell, row = i * w, (i + PAD) * width + PAD
