@@ -39,6 +39,21 @@ def test_generalised_transform_equals_brute_force(rng):
         np.testing.assert_allclose(squared_distance(f), brute, rtol=1e-12, atol=1e-9)
 
 
+def test_small_grids_column_pass_on_the_transpose_gives_the_same_bits(rng, monkeypatch):
+    # grids up to SMALL_CELLS run their column pass as rows of the transposed grid (one kernel
+    # variant fewer to load): the same floats as the column kernel, on grey walls and on walls at 0
+    from taichi_match import _distance
+
+    grids = []
+    for h, w in [(1, 1), (1, 40), (37, 1), (23, 61), (130, 90)]:
+        grids.append(np.where(rng.random((h, w)) < 0.1, -np.log(rng.random((h, w)) + 1e-3) * 7.0, np.inf))
+        grids.append(np.where(rng.random((h, w)) < 0.05, 0.0, np.inf))
+    small = [squared_distance(f) for f in grids]
+    monkeypatch.setattr(_distance, "SMALL_CELLS", 0)
+    for f, got in zip(grids, small):
+        assert got.tobytes() == squared_distance(f).tobytes()
+
+
 @pytest.mark.parametrize("reach", [0, 1, 4, 13, 20])
 def test_near_squared_distance_is_exact_within_reach(reach, rng):
     from taichi_match._distance import far, near_squared_distance
