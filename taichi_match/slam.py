@@ -95,8 +95,6 @@ from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse import csgraph
 
 from ._errors import InvalidMapError, InvalidOptionError, SlamRunError, shown
 from ._grid import GridMap, cells
@@ -1473,6 +1471,10 @@ def tie_distances(source, targets, edges, travelled) -> np.ndarray:
     lightest = np.argsort(weights, kind="stable")                         # of two edges between a pair
     pairs = np.sort(np.column_stack([rows, cols])[lightest], axis=1)
     pairs, index = np.unique(pairs, axis=0, return_index=True)            # the lightest is first
+    # SciPy's sparse graphs are imported where used (0.1-0.2 s a process, and only loop_ties uses them)
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
     graph = sparse.csr_matrix((weights[lightest][index], (pairs[:, 0], pairs[:, 1])), shape=(len(keys), len(keys)))
     return csgraph.dijkstra(graph, directed=False, indices=0)[1:1 + len(targets)]
 
