@@ -69,12 +69,13 @@ def write_outputs(result, folder, *, source: str = "", force: bool = False, keep
     from pathlib import Path
 
     from . import io
+    from ._pose_graph import import_gtsam
     from .logs import write_tum
-    from .slam import SlamResult, _gtsam
+    from .slam import SlamResult
 
     if not isinstance(result, SlamResult):
         raise InvalidOptionError(f"result must be a taichi_match.slam.SlamResult; got {type(result).__name__}")
-    gtsam = _gtsam()
+    gtsam = import_gtsam()
     paths = output_paths(folder, force=force, keep=keep)
     folder = paths["report"].parent
     folder.mkdir(parents=True, exist_ok=True)

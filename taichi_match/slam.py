@@ -101,6 +101,7 @@ from ._grid import GridMap, cells
 from ._helper import Helper
 from ._matcher import AMBIGUITY, Matcher
 from ._options import MatchOptions
+from ._pose_graph import SOLVERS, Solver, import_gtsam, optimise, tangent_covariance, values
 from ._se2 import compose, inverse, transform_points, wrap_angle
 from ._slam_outputs import jump_summary, loop_summary, output_paths, report, scan_times, write_outputs
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT, MIN_WALLS, compare_walls, placed_walls
@@ -185,12 +186,6 @@ NO_ODOMETRY = ("the log has no odometry (every scan carries the same pose); the 
 CROP_METRES = 1.0
 CROP_RADIANS = 0.05
 MAX_WORKERS = 64
-SOLVERS = ("batch", "isam2")
-# iSAM2 (``solver``): a node's linearisation point is renewed when its estimate moves by more than
-# this (gtsam's default 0.1 is for metres and radians alike: loop closures here move nodes by
-# centimetres), and each update is this many Gauss-Newton steps (not tuned)
-ISAM_RELINEARIZE = 0.01
-ISAM_STEPS = 2
 # ``loop_ties``: this many candidates of a new submap are matched, tied or not, before tied ones are
 # left (with none, tied frames left aces too few closures: 3 runs in 5 derailed, 1.4-2.9 m; with 6
 # the median ATE over five runs rose on seven shared logs of nine, aces 0.123 -> 0.176 m; with 10 on
@@ -631,7 +626,7 @@ class _Mapping:
         self.graph = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
         self.keys = []
-        self.solver = _Solver(gtsam, options.solver)
+        self.solver = Solver(gtsam, options.solver)
         self.submaps, self.done = [], []          # open (the older first), complete
         self.accepted = self.tried = 0
         self.loops, self.records, self.match_parts, self.add_seconds = [], [], [], []
@@ -642,6 +637,12 @@ class _Mapping:
         self.coarse = None                        # its PreparedMap when cast whole (``share_coarse``)
         self.closed = False                       # whether the latest scan completed a submap
         self.broken = None                        # what broke the run part-way through a scan
+
+    def optimise(self):
+        """The whole graph optimised by Levenberg-Marquardt from ``values`` (whatever the solver):
+        ``est`` and ``values`` follow it."""
+        self.est[self.keys] = optimise(self.gtsam, self.graph, self.values, self.keys)
+        self.values = values(self.gtsam, self.est, self.keys)
 
     def grow(self, size):
         """Room for ``size`` scans (doubling)."""
@@ -698,24 +699,6 @@ def _floats(values) -> Optional[np.ndarray]:
     return array.astype(np.float64) if array.dtype.kind in "iuf" else None
 
 
-def _gtsam():
-    try:
-        import gtsam
-    except ImportError as exc:                   # pragma: no cover - depends on the installation
-        raise ImportError("the mapping loop needs gtsam: pip install 'taichi-match[slam]' "
-                          "(gtsam has wheels for Python 3.11-3.13; on 3.10 build it from source)") from exc
-    return gtsam
-
-
-def _tangent_covariance(pose, covariance):
-    """A covariance of (x, y, theta) of a relative pose in the first frame as gtsam's Pose2 wants
-    it: in the tangent space at ``pose`` (translation in the pose's own axes)."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    cov = j @ np.asarray(covariance, dtype=np.float64) @ j.T
-    return 0.5 * (cov + cov.T)
-
-
 class Slam:
     """The mapping loop (see the module docstring)."""
 
@@ -749,7 +732,7 @@ class Slam:
     def _match_edge(self, gtsam, graph, a, b, res, inflation: float = 1.0) -> int:
         """A match's edge from node ``a`` to node ``b``: its pose, its calibrated covariance times
         ``inflation`` under the Cauchy kernel. Returns its index in ``graph``."""
-        cov = _tangent_covariance(res.pose, res.calibrated_covariance) * inflation
+        cov = tangent_covariance(res.pose, res.calibrated_covariance) * inflation
         graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return graph.size() - 1
 
@@ -1024,7 +1007,7 @@ class Slam:
 
     def _begin(self):
         """A new run."""
-        gtsam = _gtsam()
+        gtsam = import_gtsam()
         self._helpers = [helper for helper in (Helper.start(self._matcher.options)
                                                for _ in range(self.options.workers)) if helper]
         self._mapping = _Mapping(gtsam, self.options)
@@ -1139,7 +1122,7 @@ class Slam:
         m.target_cast = None                              # cast again at the new estimates
         self._counts = {}
         m.castable[:k + 1] = m.usable[:k + 1]             # the graph has placed every scan so far
-        m.values = _values(m.gtsam, m.est, m.keys)
+        m.values = values(m.gtsam, m.est, m.keys)
         m.seconds["optimisation"] += time.perf_counter() - t1
 
     def finish(self) -> SlamResult:
@@ -1165,10 +1148,9 @@ class Slam:
         gtsam, opts, seconds = m.gtsam, self.options, m.seconds
         if n > 1 and not m.closed:                        # the older open submap ends with the log
             self._complete(m)
-        est, keys = m.est, m.keys
+        est = m.est
         t0 = time.perf_counter()
-        est[keys] = _optimise(gtsam, m.graph, m.values, keys)
-        m.values = _values(gtsam, est, keys)
+        m.optimise()
         t1 = time.perf_counter()
         seconds["optimisation"] += t1 - t0
         disagreements = None
@@ -1177,13 +1159,11 @@ class Slam:
             if opts.audit == "repair":
                 repairs = self._repair(m.scans, m.done, est, m.travelled, m.graph, gtsam, disagreements, m.loops)
                 if repairs:
-                    est[keys] = _optimise(gtsam, m.graph, m.values, keys)
-                    m.values = _values(gtsam, est, keys)
+                    m.optimise()
             t0, t1 = t1, time.perf_counter()
             seconds["audit"] += t1 - t0
         if opts.loop_gate is not None and self._gate_loops(m):
-            est[keys] = _optimise(gtsam, m.graph, m.values, keys)
-            m.values = _values(gtsam, est, keys)
+            m.optimise()
             for pair in disagreements or ():          # the audit's pairs as the graph now joins them
                 pair["gated"] = any(lp.get("gated") and lp["submaps"] == pair["submaps"] for lp in m.loops)
                 pair["repaired"] = pair["repaired"] and any(
@@ -1517,58 +1497,6 @@ def _sd(covariance):
     """(largest translation sd, rotation sd) of an (x, y, theta) covariance."""
     c = np.asarray(covariance, dtype=np.float64)
     return math.sqrt(max(np.linalg.eigvalsh(c[:2, :2]).max(), 0.0)), math.sqrt(max(c[2, 2], 0.0))
-
-
-class _Solver:
-    """The pose graph's optimisation after each submap (``SlamOptions.solver``): Levenberg-Marquardt
-    over the whole graph from ``values``, or iSAM2 given the factors and nodes added since its
-    last update (from their current estimates) and relinearising where the estimates moved."""
-
-    def __init__(self, gtsam, kind: str):
-        self._gtsam = gtsam
-        self._isam = None
-        if kind == "isam2":
-            params = gtsam.ISAM2Params()
-            params.setRelinearizeThreshold(ISAM_RELINEARIZE)
-            params.relinearizeSkip = 1
-            self._isam = gtsam.ISAM2(params)
-        self._factors = self._nodes = 0                  # how many the solver has been given
-
-    def optimise(self, graph, values, est, keys) -> np.ndarray:
-        """(len(keys), 3) the poses of ``keys`` after this update."""
-        gtsam = self._gtsam
-        if self._isam is None:
-            return _optimise(gtsam, graph, values, keys)
-        new = gtsam.NonlinearFactorGraph()
-        for i in range(self._factors, graph.size()):
-            new.add(graph.at(i))
-        self._isam.update(new, _values(gtsam, est, keys[self._nodes:]))
-        for _ in range(ISAM_STEPS - 1):
-            self._isam.update()
-        self._factors, self._nodes = graph.size(), len(keys)
-        return _poses(gtsam, self._isam.calculateEstimate(), keys)
-
-
-def _poses(gtsam, result, keys) -> np.ndarray:
-    """(len(keys), 3) the poses of ``keys`` in ``result`` (every value a Pose2): gtsam's
-    ``extractPose2`` gives them all at once, in the Values' sorted key order (the same floats as
-    three calls per key, a tenth of the time: 0.16 against 1.7 ms for 600 nodes)."""
-    order = np.searchsorted(np.asarray(result.keys()), keys)
-    return gtsam.utilities.extractPose2(result)[order]
-
-
-def _optimise(gtsam, graph, values, keys):
-    """The graph optimised from ``values``: (len(keys), 3) poses of ``keys``."""
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(100)
-    return _poses(gtsam, gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize(), keys)
-
-
-def _values(gtsam, est, keys):
-    values = gtsam.Values()
-    for k in keys:
-        values.insert(k, gtsam.Pose2(*est[k]))
-    return values
 
 
 def slam(log: LaserLog, options: SlamOptions = None, **overrides) -> SlamResult:
