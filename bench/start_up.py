@@ -6,9 +6,10 @@ interpreter per side (this tree, and the package at REVISION from `git archive`;
 first alternates), timing apart: importing what the command imports (the package's CLI and
 mapping loop, gtsam), starting Taichi, the first call of every kernel variant the run uses (Taichi's
 Python frontend plus its load of the compiled code, from its offline cache, which the first round
-warms), the run (the kernels' first calls within it) and all of it (total; reading the log
-aside). Prints the medians per side, the median of the paired ratios (this tree
-/ REVISION), and whether both sides gave the same poses, bit for bit.
+warms; the first launch's own run included, a few ms), the run (the kernels' first calls within
+it) and all of it (total: from the first import to the run's end, reading the log included).
+Prints the medians per side, the median of the paired ratios (this tree / REVISION), and whether
+both sides gave the same poses, bit for bit.
 
     python bench/start_up.py dbeb3df
     python bench/start_up.py dbeb3df --log csail --rounds 7 --out bench/START_UP.md
@@ -85,7 +86,10 @@ def main():
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--out", help="also write the lines to this markdown file")
     args = parser.parse_args()
-    log = glob.glob(str(LOGS / args.log / f"{args.log}.log*"))[0]
+    found = glob.glob(str(LOGS / args.log / f"{args.log}.log*"))
+    if not found:
+        sys.exit(f"no log {args.log!r} in {LOGS}")
+    log = found[0]
     with tempfile.TemporaryDirectory() as folder:
         archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.revision, "taichi_match"], check=True,
                                  capture_output=True).stdout

@@ -9,9 +9,10 @@ elsewhere, the squared Euclidean distance to the nearest wall, exact (integers i
 column then along every row, each line a work item (the lower envelope of parabolas, with its
 scratch arrays per line), so the result does not depend on the schedule. Equal to
 ``scipy.ndimage.distance_transform_edt`` bit for bit in the tests, and 3x faster here on
-800 x 800 cells (20 ms against 60: no feature indices). The column pass reads the columns in
-place: a thread's columns are neighbours, whose cells share cache lines (against transposing for
-a pass along rows and back, measured: 2000 x 2000 cells 97 -> 78-86 ms, 1000 x 1000 19-21 -> 16).
+800 x 800 cells (20 ms against 60: no feature indices). On large grids the column pass reads the
+columns in place: a thread's columns are neighbours, whose cells share cache lines (against
+transposing for a pass along rows and back, measured: 2000 x 2000 cells 97 -> 78-86 ms, 1000 x
+1000 19-21 -> 16); up to ``SMALL_CELLS`` it runs on the transposed grid (one kernel fewer to load).
 
 For the few walls of a laser-built map (0.1-2 % of its cells) and a short reach, stamping is
 faster still: ``near_squared_distance`` (each wall writes its squared distance into the disc

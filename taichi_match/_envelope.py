@@ -123,9 +123,10 @@ def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls,
     distances within ``reach`` (``envelope_reach``) are kept as ``_distance.near_squared_distance``
     gives them (returned, for the verdict) and read through ``envelope_profile(reach, ratio)``
     (beyond the reach the envelope is below 2**-25 and changes nothing in float32): the same grid
-    bit for bit as from the exact transform and the blur. Else the walls are grey, each stamping
-    weight * profile (the largest wins): ``conflict_grid`` of max(p, envelope) bit for bit, without
-    that grid. ``prob`` None (only with ``squared``): every known cell is 0 or 1 (a trinary map)
+    bit for bit as from the exact transform and the blur (not with codes: their walls at 1 go by
+    the grey stamps, which give the same grid). Else the walls are grey, each stamping weight *
+    profile (the largest wins): ``conflict_grid`` of max(p, envelope) bit for bit, without that
+    grid. ``prob`` None (only with ``squared``): every known cell is 0 or 1 (a trinary map)
     and hi is the envelope alone (1 on the walls).
 
     NumPy fills the grid with the value of an unknown cell that no wall reaches (-2; -4 on the ring
@@ -144,8 +145,11 @@ def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls,
     edmonton's coarse levels. NumPy writing every cell's value before the launch (its own
     arithmetic, not a fill) was slower in the loop than the kernel writing them.
     """
+    coded = prob is not None and np.ndim(prob) == 1             # a table of the codes' probabilities
     if prob is None and not squared:
         raise ValueError("grey walls need the map's probabilities")
+    if coded and squared:
+        raise ValueError("a map of codes goes by the grey stamps (squared=False): the same grid")
     h, w = known.shape
     out = np.full((h + 2 * PAD, w + 2 * PAD), np.float32(-2.0))  # unknown where no wall reaches
     out[:PAD], out[h + PAD:] = _OFF_MAP, _OFF_MAP                 # the ring off the map
@@ -155,7 +159,6 @@ def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls,
     rows, starts, ends, weights, first, half = wall_runs(rows, cols, None if squared else weights, (h, w), reach,
                                                          squared or monotone)
     p = np.zeros(1) if prob is None else np.ascontiguousarray(prob, dtype=np.float64).reshape(-1)
-    coded = prob is not None and np.ndim(prob) == 1             # a table of the codes' probabilities
     known = np.ascontiguousarray(known).view(np.uint8).reshape(-1)
     runs = (rows, starts, ends, weights, first, half, row_spread(h), known, p)
     if not squared:
@@ -170,7 +173,7 @@ def near_conflict_grid(known: np.ndarray, prob, reach: int, ratio: float, walls,
     if h and w:
         with kernel_lock():
             launch(kernels(_build_conflict)[0], (*runs, profile, costs, distances.reshape(-1), out.reshape(-1)),
-                   (prob is not None, coded, _taichi_type(dtype)))
+                   (prob is not None, _taichi_type(dtype)))
     return out, distances
 
 
@@ -238,10 +241,9 @@ def _build_conflict(ti):
     def nearest(rows_: i32, starts: i32, ends: i32, weights: f64, first: i32, half: i32, spread: i32,
                 known: ti.types.ndarray(dtype=ti.u8, ndim=1), prob: f64, profile: f64,
                 costs: ti.types.ndarray(dtype=ti.f32, ndim=2), squared: ti.types.ndarray(ndim=1),
-                out: ti.types.ndarray(dtype=ti.f32, ndim=1), grey: ti.template(), coded: ti.template(),
-                dt: ti.template()):
+                out: ti.types.ndarray(dtype=ti.f32, ndim=1), grey: ti.template(), dt: ti.template()):
         # walls at 1: the squared distances first (the least per cell, no branch), then the values
-        # from them (``grey``: a probability map, hi = max(p, envelope))
+        # from them (``grey``: a probability map, hi = max(p, envelope); never a codes' table)
         h = first.shape[0] - 1
         w = known.shape[0] // h
         width = w + 2 * PAD
@@ -263,7 +265,7 @@ def _build_conflict(ti):
                     q = ti.min(ti.cast(squared[cell + j], ti.i32), last)
                     c = costs[0, q]
                     if ti.static(grey):
-                        c = ti.cast(1.0 - ti.max(p_at(prob, known, cell + j, coded), profile[q]), ti.f32)
+                        c = ti.cast(1.0 - ti.max(prob[cell + j], profile[q]), ti.f32)
                     out[row + j] = ti.select(known[cell + j] != 0, c, costs[1, q])
 
     @ti.kernel
@@ -272,10 +274,11 @@ def _build_conflict(ti):
                  table: ti.types.ndarray(dtype=ti.f64, ndim=2), envelope: f64,
                  out: ti.types.ndarray(dtype=ti.f32, ndim=1), mode: i32):
         # grey walls: the envelope's maximum per cell (weight * ``table[row offset, column
-        # offset]``, the profile at that squared distance), then the values from it. ``coded``
-        # is read at run time, not a template argument: one variant for Taichi to load in a
-        # process (0.1-0.15 s from its offline cache), and the front end's preparations took the
-        # same time (ratios 0.99-1.02, ``bench/ab_front_end.py --captured``, 2026-12-07)
+        # offset]``, the profile at that squared distance), then the values from it. Whether
+        # ``prob`` is the codes' table (``mode[0]``) is read at run time, not a template argument:
+        # one variant for Taichi to load in a process (0.1-0.15 s from its offline cache), and the
+        # front end's preparations took the same time (ratios 0.99-1.02, ``bench/ab_front_end.py
+        # --captured``, 2026-12-07)
         h = first.shape[0] - 1
         w = known.shape[0] // h
         width = w + 2 * PAD

@@ -1,4 +1,8 @@
-"""The pose graph in gtsam: the mapping loop's one layer that touches it (``slam``, ``_slam_outputs``).
+"""The mapping loop's pose graph optimised in gtsam (``slam``; ``_slam_outputs`` writes the graph).
+
+``slam`` builds the graph (its factors and noise models) and asks this module for the rest: the
+import, the solver after each submap, Levenberg-Marquardt over the whole graph, Values in and
+poses out, and the covariance of an edge as gtsam reads it.
 
 Nodes are ``gtsam.Pose2`` keyed by integers (a scan's index, a submap frame's ``FRAME_KEY`` + its
 index); estimates travel as (N, 3) float64 arrays of (x, y, theta) in the world frame, metres and

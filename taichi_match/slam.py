@@ -96,12 +96,12 @@ from typing import Optional
 
 import numpy as np
 
+from . import _pose_graph as pose_graph
 from ._errors import InvalidMapError, InvalidOptionError, SlamRunError, shown
 from ._grid import GridMap, cells
 from ._helper import Helper
 from ._matcher import AMBIGUITY, Matcher
 from ._options import MatchOptions
-from ._pose_graph import SOLVERS, Solver, import_gtsam, optimise, tangent_covariance, values
 from ._se2 import compose, inverse, transform_points, wrap_angle
 from ._slam_outputs import jump_summary, loop_summary, output_paths, report, scan_times, write_outputs
 from ._verdict import MAX_CONFLICT, MIN_AGREEMENT, MIN_WALLS, compare_walls, placed_walls
@@ -468,8 +468,8 @@ class SlamOptions:
         if self.loop_ties is not None and not (_real(self.loop_ties) is not None and math.isfinite(self.loop_ties)
                                                and self.loop_ties >= 0):
             raise InvalidOptionError(f"loop_ties must be None or a finite number >= 0; got {shown(self.loop_ties)}")
-        if self.solver not in SOLVERS:
-            raise InvalidOptionError(f"solver must be one of {SOLVERS}; got {shown(self.solver)}")
+        if self.solver not in pose_graph.SOLVERS:
+            raise InvalidOptionError(f"solver must be one of {pose_graph.SOLVERS}; got {shown(self.solver)}")
         if not (self.audit is None or isinstance(self.audit, str)) or self.audit not in AUDITS:
             raise InvalidOptionError(f"audit must be one of {AUDITS}; got {shown(self.audit)}")
         if self.loop_ties is not None and self.workers:
@@ -626,7 +626,7 @@ class _Mapping:
         self.graph = gtsam.NonlinearFactorGraph()
         self.values = gtsam.Values()
         self.keys = []
-        self.solver = Solver(gtsam, options.solver)
+        self.solver = pose_graph.Solver(gtsam, options.solver)
         self.submaps, self.done = [], []          # open (the older first), complete
         self.accepted = self.tried = 0
         self.loops, self.records, self.match_parts, self.add_seconds = [], [], [], []
@@ -641,8 +641,8 @@ class _Mapping:
     def optimise(self):
         """The whole graph optimised by Levenberg-Marquardt from ``values`` (whatever the solver):
         ``est`` and ``values`` follow it."""
-        self.est[self.keys] = optimise(self.gtsam, self.graph, self.values, self.keys)
-        self.values = values(self.gtsam, self.est, self.keys)
+        self.est[self.keys] = pose_graph.optimise(self.gtsam, self.graph, self.values, self.keys)
+        self.values = pose_graph.values(self.gtsam, self.est, self.keys)
 
     def grow(self, size):
         """Room for ``size`` scans (doubling)."""
@@ -732,7 +732,7 @@ class Slam:
     def _match_edge(self, gtsam, graph, a, b, res, inflation: float = 1.0) -> int:
         """A match's edge from node ``a`` to node ``b``: its pose, its calibrated covariance times
         ``inflation`` under the Cauchy kernel. Returns its index in ``graph``."""
-        cov = tangent_covariance(res.pose, res.calibrated_covariance) * inflation
+        cov = pose_graph.tangent_covariance(res.pose, res.calibrated_covariance) * inflation
         graph.add(gtsam.BetweenFactorPose2(a, b, gtsam.Pose2(*res.pose), self._robust_noise(gtsam, cov)))
         return graph.size() - 1
 
@@ -1007,7 +1007,7 @@ class Slam:
 
     def _begin(self):
         """A new run."""
-        gtsam = import_gtsam()
+        gtsam = pose_graph.import_gtsam()
         self._helpers = [helper for helper in (Helper.start(self._matcher.options)
                                                for _ in range(self.options.workers)) if helper]
         self._mapping = _Mapping(gtsam, self.options)
@@ -1122,7 +1122,7 @@ class Slam:
         m.target_cast = None                              # cast again at the new estimates
         self._counts = {}
         m.castable[:k + 1] = m.usable[:k + 1]             # the graph has placed every scan so far
-        m.values = values(m.gtsam, m.est, m.keys)
+        m.values = pose_graph.values(m.gtsam, m.est, m.keys)
         m.seconds["optimisation"] += time.perf_counter() - t1
 
     def finish(self) -> SlamResult:
