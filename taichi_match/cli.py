@@ -407,7 +407,12 @@ def _slam(args):
              "workers": ("--workers", args.workers), "loop_ties": ("--loop-ties", args.loop_ties),
              "solver": ("--solver", args.solver), "audit": ("--audit", args.audit),
              "front_end_inflation": ("--front-end-inflation", args.front_end_inflation),
-             "gate_inflation": ("--gate-inflation", args.gate_inflation), "loop_gate": ("--loop-gate", args.loop_gate)}
+             "gate_inflation": ("--gate-inflation", args.gate_inflation), "loop_gate": ("--loop-gate", args.loop_gate),
+             "odometry_sd": ("--odometry-sd", None if args.odometry_sd is None else tuple(args.odometry_sd)),
+             "loop_growth": ("--loop-growth", args.loop_growth),
+             "robust_kernel": ("--robust-kernel", args.robust_kernel),
+             "loop_consistency": ("--loop-consistency", args.loop_consistency),
+             "jump_check": ("--jump-check", args.jump_check)}
     try:
         options = SlamOptions(**{field: off.get(value, value) if isinstance(value, str) else value
                                  for field, (_, value) in given.items() if value is not None})
@@ -725,6 +730,25 @@ def main(argv=None):
                       help="at the end, take out of the graph the loop closures whose residual at the optimised "
                            "poses exceeds this chi-square in their own covariance, and optimise again (default "
                            "16.27, 99.9 %% with 3 degrees of freedom), or 'off' (see SlamOptions.loop_gate)")
+    slam.add_argument("--odometry-sd", type=float, nargs=5,
+                      metavar=("PER_M", "PER_RAD", "RAD_PER_M", "FLOOR_M", "FLOOR_RAD"),
+                      help="your robot's odometry model, the standard deviations of a step: metres per metre "
+                           "travelled, radians per radian turned, radians per metre, and the metres and radians "
+                           "floors (default 0.02 0.02 0.0052 0.005 0.0017, see SlamOptions.odometry_sd)")
+    slam.add_argument("--loop-growth", type=float, metavar="X",
+                      help="loop-closure candidates' radius grows by X times the travel between the two submaps "
+                           "(default 0.1, see SlamOptions.loop_growth)")
+    slam.add_argument("--robust-kernel", type=float, metavar="SD",
+                      help="width of the Cauchy kernel on every match's edge, in standard deviations (default 1.5, "
+                           "see SlamOptions.robust_kernel)")
+    slam.add_argument("--loop-consistency", action=argparse.BooleanOptionalAction,
+                      help="let an accepted loop closure into the graph only when the closures near both its "
+                           "frames do not mostly disagree (default), or every accepted one "
+                           "(see SlamOptions.loop_consistency)")
+    slam.add_argument("--jump-check", type=_number_or_off, metavar="X",
+                      help="when the front end's match fails at an odometry step over X times the run's usual "
+                           "ones, search for the scan around the previous one and bridge an odometry jump it "
+                           "proves (default 3), or 'off' (see SlamOptions.jump_check)")
     slam.add_argument("--front-end-levels", type=int, metavar="N",
                       help="pyramid levels of the front end's matches (default 2, see SlamOptions.scan_matcher)")
     slam.add_argument("--front-end-lookup", choices=("bilinear", "nearest"),

@@ -538,14 +538,17 @@ def test_cli_slam_submap_frames(short_run, tmp_path):
                                                  ("--audit", "audit", ("report", "repair")),
                                                  ("--front-end-inflation", "front_end_inflation", (2.0, 6.0)),
                                                  ("--gate-inflation", "gate_inflation", (6.0, 2.0)),
-                                                 ("--loop-gate", "loop_gate", (30.0, 16.27))])
+                                                 ("--loop-gate", "loop_gate", (30.0, 16.27)),
+                                                 ("--loop-growth", "loop_growth", (0.2, 0.1)),
+                                                 ("--robust-kernel", "robust_kernel", (3.0, 1.5)),
+                                                 ("--jump-check", "jump_check", (5.0, 3.0))])
 def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field, values):
     """The speed options' flags set their field of the run's options (recorded in report.md),
     which is the default without them ("off": None)."""
     log_path = tmp_path / "run.log"
     write_carmen(log_path, short_run.log)
     flags = [flag] if values[0] is True else [flag, str(values[0])]
-    off = [([flag, "off"], None)] if flag in ("--loop-ties", "--audit", "--loop-gate") else []
+    off = [([flag, "off"], None)] if flag in ("--loop-ties", "--audit", "--loop-gate", "--jump-check") else []
     runs = [(flags, values[0]), ([], values[1])] + off
     for k, (args, value) in enumerate(runs):
         out = tmp_path / f"out{k}"
@@ -553,8 +556,30 @@ def test_cli_slam_speed_options_reach_the_loop(short_run, tmp_path, flag, field,
         assert f"{field}={value!r}" in (out / "report.md").read_text()
 
 
+def test_cli_slam_odometry_model_and_loop_consistency_reach_the_loop(short_run, tmp_path):
+    """``--odometry-sd`` (five numbers) and ``--no-loop-consistency`` set their fields, recorded in
+    report.md; without them the defaults."""
+    import math
+
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    sd = (0.03, 0.04, 0.006, 0.002, 0.001)
+    out = tmp_path / "set"
+    flags = ["--odometry-sd", *map(str, sd), "--no-loop-consistency"]
+    assert main(["slam", str(log_path), "--out", str(out), *flags]) == 0
+    report = (out / "report.md").read_text()
+    assert f"odometry_sd={sd!r}" in report and "loop_consistency=False" in report
+    out = tmp_path / "default"
+    assert main(["slam", str(log_path), "--out", str(out)]) == 0
+    report = (out / "report.md").read_text()
+    default = (0.02, 0.02, math.radians(0.3), 0.005, math.radians(0.1))
+    assert f"odometry_sd={default!r}" in report and "loop_consistency=True" in report
+
+
 @pytest.mark.parametrize("args", [["--loop-gate", "-1"], ["--gate-inflation", "0"], ["--submap-scans", "3"],
-                                  ["--max-ray", "-3"], ["--resolution", "nan"], ["--loop-ties", "-2"]])
+                                  ["--max-ray", "-3"], ["--resolution", "nan"], ["--loop-ties", "-2"],
+                                  ["--odometry-sd", "0.02", "0.02", "0.005", "0.005", "0"], ["--jump-check", "0.5"],
+                                  ["--robust-kernel", "0"], ["--loop-growth", "-1"]])
 def test_cli_slam_a_refused_value_names_its_flag(short_run, tmp_path, capsys, args):
     """A value ``SlamOptions`` refuses is a one-line error (exit 2) that names the flag typed, before
     any work and without a traceback."""
