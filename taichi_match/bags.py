@@ -8,25 +8,40 @@ message's fields). Conventions, beyond those of ``logs``:
 - Each scan's angles are ``angle_min + i * angle_increment``; a reading below ``range_min`` or not
   finite and negative is invalid (NaN), one at or above ``range_max`` (or +inf) is no return.
 - Each scan's pose is the odometry pose at the scan's header stamp, interpolated linearly between
-  the two odometry messages around it (headings unwrapped). The laser is taken to sit at the
-  odometry's child frame: no TF is read. Scans before the first or after the last odometry
-  message are left out, and so counted in ``read_rosbag``'s second return value.
+  the two odometry messages around it (headings unwrapped), composed with the laser's mounting:
+  its pose in the odometry's child frame (the robot's base), given (``laser_pose``) or read from
+  the bag's ``/tf_static`` (the chain of fixed transforms from the base to the scans' frame,
+  projected onto the floor: the laser level, or upside down, when its beams' angles are negated).
+  Without either, or when the scans' frame is the base's, the laser sits at the base (with a
+  ``LaserMountWarning`` when the two frames differ). Moving transforms (``/tf``) are not read.
+  Scans before the first or after the last odometry message are left out, and so counted in
+  ``read_rosbag``'s second return value.
 - A bag with several LaserScan (or Odometry) topics needs the topic named.
 """
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
 
-from ._errors import LogFileError, LogFormatError
+from ._errors import InvalidOptionError, LogFileError, LogFormatError
 from .logs import _MAX_BEAMS as MAX_BEAMS
 from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan, yaw_of_quaternion
 
-__all__ = ["read_rosbag", "scan_from_laserscan"]
+__all__ = ["LaserMountWarning", "laser_mount", "read_rosbag", "scan_from_laserscan"]
 
 SCAN_TYPE = "sensor_msgs/msg/LaserScan"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+# a laser counts as level (or upside down) when its z axis lies within this of the base's (or of
+# its opposite): its beams then sweep the floor plane to within the cosine's error
+LEVEL_TOLERANCE = math.radians(5.0)
+MAX_MOUNT_M = 100.0                     # a laser this far from the robot's base is a units mistake
+
+
+class LaserMountWarning(UserWarning):
+    """The bag does not say where the laser sits on the robot: it is taken to sit at the base."""
 
 
 def _stamp(header):
@@ -47,13 +62,15 @@ def _topic(connections, msgtype, name, path):
     return topics[0]
 
 
-def scan_from_laserscan(msg, pose) -> Scan:
+def scan_from_laserscan(msg, pose, *, upside_down: bool = False) -> Scan:
     """A ``sensor_msgs/LaserScan`` message (ROS 1 or 2, from a bag or a live subscription: any
     object with its fields) as a ``Scan`` at ``pose``, the laser's (x, y, theta) in the odometry
-    frame at the message's stamp (the caller's odometry or TF lookup), for ``slam.Slam.add``.
-    Ranges as the module docstring says; a message with more than ``logs`` allows of beams, or
-    without a finite ``range_max`` > 0, a finite ``angle_min`` and a non-zero ``angle_increment``
-    keeping every beam within one turn, raises LogFormatError."""
+    frame at the message's stamp (the caller's odometry or TF lookup, composed with the laser's
+    mounting: ``laser_mount``), for ``slam.Slam.add``. ``upside_down``: the laser is mounted
+    upside down (as ``laser_mount`` says), and its beams' angles are negated. Ranges as the module
+    docstring says; a message with more than ``logs`` allows of beams, or without a finite
+    ``range_max`` > 0, a finite ``angle_min`` and a non-zero ``angle_increment`` keeping every beam
+    within one turn, raises LogFormatError."""
     t = _stamp(msg.header)
     n = len(msg.ranges)
     if n > MAX_BEAMS:
@@ -69,14 +86,58 @@ def scan_from_laserscan(msg, pose) -> Scan:
         r[(r < msg.range_min) | (np.isinf(r) & (r < 0))] = np.nan
         r[(r >= max_range) | np.isposinf(r)] = max_range
     angles = msg.angle_min + np.arange(len(r)) * msg.angle_increment
+    if upside_down:
+        angles = -angles
     pose = np.array(pose, dtype=np.float64)
     for array in (r, angles, pose):
         array.setflags(write=False)
     return Scan(float(t), r, angles, pose, max_range)
 
 
-def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
+
+def _rotation(q):
+    """The 3 x 3 rotation of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def laser_mount(transforms, base: str, laser: str):
+    """The laser's mounting on the floor plane: ((x, y, theta) of the laser frame in the base frame,
+    upside_down), from ``transforms``, {child frame: (parent frame, (tx, ty, tz), (qx, qy, qz, qw))}
+    as ``geometry_msgs/TransformStamped`` give them (``/tf_static``); None when no chain of them
+    leads from ``base`` up to ``laser``'s ancestors. The laser must be level or upside down (its z
+    axis within ``LEVEL_TOLERANCE`` of the base's or of its opposite), else LogFormatError: its
+    beams would not sweep the floor plane.
+    """
+    base, frame = base.lstrip("/"), laser.lstrip("/")
+    rotation, translation, seen = np.eye(3), np.zeros(3), set()
+    while frame != base:                      # up from the laser: base_T_laser = parent_T_frame ...
+        if frame not in transforms or frame in seen:
+            return None
+        seen.add(frame)
+        parent, t, q = transforms[frame]
+        q, t = np.asarray(q, dtype=np.float64), np.asarray(t, dtype=np.float64)
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) <= 1e-3):
+            raise LogFormatError(f"the static transform from {parent!r} to {frame!r} needs a finite translation "
+                                 f"and a unit quaternion; got {tuple(t)}, {tuple(q)}")
+        step = _rotation(q / np.linalg.norm(q))
+        rotation, translation = step @ rotation, step @ translation + t
+        frame = parent.lstrip("/")
+    up = rotation[2, 2]                       # the laser's z axis against the base's
+    if abs(up) < math.cos(LEVEL_TOLERANCE):
+        raise LogFormatError(f"the laser's frame {laser!r} is tilted {math.degrees(math.acos(min(abs(up), 1.0))):.1f} "
+                             f"degrees from level in {base!r}: its beams do not sweep the floor plane")
+    theta = math.atan2(rotation[1, 0], rotation[0, 0])
+    return (float(translation[0]), float(translation[1]), theta), bool(up < 0)
+
+
+def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, laser_pose=None):
     """Read a ROS 1 (``.bag``) or ROS 2 (folder or ``.db3``/``.mcap``) bag.
+
+    ``laser_pose``: the laser's (x, y, theta) in the odometry's child frame (metres, radians), level;
+    None (the default): from the bag's ``/tf_static`` (see the module docstring).
 
     Returns
     -------
@@ -89,17 +150,34 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
         from rosbags.typesys import Stores, get_typestore
     except ImportError as exc:                    # pragma: no cover - depends on the installation
         raise ImportError("reading bags needs rosbags: pip install 'taichi-match[slam]'") from exc
+    mount = None
+    if laser_pose is not None:
+        try:
+            given = np.asarray(laser_pose, dtype=np.float64)
+        except (TypeError, ValueError):
+            given = np.full(3, np.nan)
+        if given.shape != (3,) or not np.all(np.isfinite(given)) or np.abs(given[:2]).max() > MAX_MOUNT_M:
+            raise InvalidOptionError(f"laser_pose must be three finite numbers (x, y, theta), x and y within "
+                                     f"{MAX_MOUNT_M:g} m; got {laser_pose!r}")
+        mount = (tuple(float(v) for v in given), False)
     path = Path(path)
     bag = path.parent if path.suffix in (".db3", ".mcap") else path
-    scans, odometry = [], []
+    scans, odometry, static, bases = [], [], {}, set()
     try:
         with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
             scan_name = _topic(reader.connections, SCAN_TYPE, scan_topic, path)
             odom_name = _topic(reader.connections, ODOMETRY_TYPE, odometry_topic, path)
-            wanted = [c for c in reader.connections if c.topic in (scan_name, odom_name)]
+            wanted = [c for c in reader.connections if c.topic in (scan_name, odom_name)
+                      or (c.topic == "/tf_static" and c.msgtype == TF_TYPE)]
             for connection, _, raw in reader.messages(connections=wanted):
                 msg = reader.deserialize(raw, connection.msgtype)
-                if connection.topic == odom_name:
+                if connection.topic == "/tf_static":
+                    for tf in msg.transforms:
+                        t, q = tf.transform.translation, tf.transform.rotation
+                        static[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id, (t.x, t.y, t.z),
+                                                                 (q.x, q.y, q.z, q.w))
+                elif connection.topic == odom_name:
+                    bases.add(msg.child_frame_id)
                     p, q = msg.pose.pose.position, msg.pose.pose.orientation
                     if not abs(math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) - 1.0) <= 1e-3:
                         raise LogFormatError(f"{path}: an odometry orientation that is not a unit quaternion "
@@ -129,6 +207,9 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
         raise LogFormatError(f"{path}: fewer than two Odometry messages at different stamps "
                              "(a log without odometry cannot be mapped)")
     heading = np.unwrap(odo[:, 3])
+    if mount is None:
+        mount = _mount_from_bag(path, static, bases, scans)
+    (mx, my, mtheta), upside_down = mount
     out, left_out = [], 0
     for msg in sorted(scans, key=lambda m: _stamp(m.header)):
         t = _stamp(msg.header)
@@ -137,11 +218,38 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None):
             continue
         pose = np.array([np.interp(t, odo[:, 0], odo[:, 1]), np.interp(t, odo[:, 0], odo[:, 2]),
                          np.interp(t, odo[:, 0], heading)])
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        pose = np.array([pose[0] + c * mx - s * my, pose[1] + s * mx + c * my, pose[2] + mtheta])
         pose[2] = np.arctan2(np.sin(pose[2]), np.cos(pose[2]))
         try:
-            out.append(scan_from_laserscan(msg, pose))
+            out.append(scan_from_laserscan(msg, pose, upside_down=upside_down))
         except LogFormatError as exc:
             raise LogFormatError(f"{path}: {exc}") from None
     if not out:
         raise LogFormatError(f"{path}: no LaserScan inside the odometry's time span")
     return LaserLog(tuple(out), odo), left_out
+
+
+def _mount_from_bag(path, static, bases, scans):
+    """``laser_mount`` from the bag's static transforms, from the odometry's child frame to the
+    first scan's frame: identity when they are one frame or unnamed; identity with a
+    ``LaserMountWarning`` when no static transform joins them."""
+    if len(bases) > 1:
+        raise LogFormatError(f"{path}: the odometry moves several frames {sorted(bases)}; name one topic")
+    base = next(iter(bases), "").lstrip("/")
+    frames = {msg.header.frame_id.lstrip("/") for msg in scans}
+    if len(frames) > 1:
+        raise LogFormatError(f"{path}: the LaserScan messages come in several frames {sorted(frames)}")
+    laser = frames.pop()
+    if not base or not laser or base == laser:
+        return (0.0, 0.0, 0.0), False
+    try:
+        mount = laser_mount(static, base, laser)
+    except LogFormatError as exc:
+        raise LogFormatError(f"{path}: {exc}") from None
+    if mount is None:
+        warnings.warn(f"{path}: no static transform (/tf_static) from the odometry's frame {base!r} to the scans' "
+                      f"frame {laser!r}: the laser is taken to sit at {base!r} (give its pose: laser_pose, "
+                      f"--laser-pose)", LaserMountWarning, stacklevel=3)
+        return (0.0, 0.0, 0.0), False
+    return mount

@@ -379,13 +379,25 @@ def _slam(args):
     if bag and args.max_range is not None:
         raise InvalidOptionError("--max-range applies to CARMEN logs only (a bag's LaserScan gives its own "
                                  "range_max)")
-    for flag, topic in (("--scan-topic", args.scan_topic), ("--odom-topic", args.odom_topic)):
-        if not bag and topic is not None:
-            raise InvalidOptionError(f"{flag} applies to ROS bags only ({args.log} is read as a CARMEN log)")
+    for flag, given in (("--scan-topic", args.scan_topic), ("--odom-topic", args.odom_topic),
+                        ("--laser-pose", args.laser_pose)):
+        if not bag and given is not None:
+            raise InvalidOptionError(f"{flag} applies to ROS bags only ({args.log} is read as a CARMEN log, whose "
+                                     f"scans carry the laser's pose)")
     if bag:
-        from taichi_match.bags import read_rosbag
+        import warnings
 
-        log, left_out = read_rosbag(args.log, scan_topic=args.scan_topic, odometry_topic=args.odom_topic)
+        from taichi_match.bags import LaserMountWarning, read_rosbag
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", LaserMountWarning)
+            log, left_out = read_rosbag(args.log, scan_topic=args.scan_topic, odometry_topic=args.odom_topic,
+                                        laser_pose=args.laser_pose)
+        for warning in caught:                        # ours as a line; any other as Python shows it
+            if issubclass(warning.category, LaserMountWarning):
+                print(f"taichi-match: warning: {warning.message}", file=sys.stderr)
+            else:
+                warnings.showwarning(warning.message, warning.category, warning.filename, warning.lineno)
         if left_out:
             print(f"{left_out} scans outside the odometry's time span left out")
     else:
@@ -685,6 +697,9 @@ def main(argv=None):
                                    "(folder, .db3, .mcap) with sensor_msgs/LaserScan and nav_msgs/Odometry")
     slam.add_argument("--scan-topic", help="the LaserScan topic of a bag that has several")
     slam.add_argument("--odom-topic", help="the Odometry topic of a bag that has several")
+    slam.add_argument("--laser-pose", type=float, nargs=3, metavar=("X", "Y", "THETA"),
+                      help="a bag's laser pose on the robot: metres and radians in the odometry's child frame, "
+                           "level (default: from the bag's /tf_static; without it the laser sits at the base)")
     slam.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     slam.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     slam.add_argument("--reference", metavar="TUM", help="a reference trajectory: print ATE and RPE against it")

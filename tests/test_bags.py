@@ -24,11 +24,11 @@ def header(t, frame):
                                     frame_id=frame)
 
 
-def scan_msg(scan):
+def scan_msg(scan, frame="laser"):
     n = len(scan.ranges)
     step = (scan.angles[-1] - scan.angles[0]) / (n - 1)
     return T["sensor_msgs/msg/LaserScan"](
-        header=header(scan.timestamp + 0.25, "laser"),
+        header=header(scan.timestamp + 0.25, frame),
         angle_min=float(scan.angles[0]), angle_max=float(scan.angles[-1]),
         angle_increment=float(step), time_increment=0.0, scan_time=0.0, range_min=0.05,
         range_max=float(scan.max_range), ranges=np.asarray(scan.ranges, dtype=np.float32),
@@ -51,9 +51,25 @@ def odom(t, x, y, yaw, scale=1.0):
                                               covariance=np.zeros(36)))
 
 
-def write_bag(path, log, *, ros1=False, scans=True, odometry=True, scale=1.0):
+def tf_message(parent, child, translation, rotation):
+    geometry = {k: T[f"geometry_msgs/msg/{k}"] for k in ("Vector3", "Quaternion", "Transform", "TransformStamped")}
+    stamped = geometry["TransformStamped"](
+        header=header(0.0, parent), child_frame_id=child,
+        transform=geometry["Transform"](translation=geometry["Vector3"](x=translation[0], y=translation[1],
+                                                                        z=translation[2]),
+                                        rotation=geometry["Quaternion"](x=rotation[0], y=rotation[1], z=rotation[2],
+                                                                        w=rotation[3])))
+    return T["tf2_msgs/msg/TFMessage"](transforms=[stamped])
+
+
+IDENTITY = [("base_link", "laser", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0))]
+
+
+def write_bag(path, log, *, ros1=False, scans=True, odometry=True, scale=1.0, static=IDENTITY, scan=None):
     """Odometry at each scan's time and half-way between scans; scans stamped 0.25 s after their
-    odometry pose's time (``simulate_log``'s scans are 1 s apart)."""
+    odometry pose's time (``simulate_log``'s scans are 1 s apart); ``static``: /tf_static's
+    transforms (parent, child, translation, quaternion), the laser at the base by default;
+    ``scan``: the messages' maker (``scan_msg``)."""
     if ros1:
         from rosbags.rosbag1 import Writer
         writer, serialize = Writer(path), STORE.serialize_ros1
@@ -63,17 +79,21 @@ def write_bag(path, log, *, ros1=False, scans=True, odometry=True, scale=1.0):
     with writer:
         c_scan = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=STORE)
         c_odom = writer.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=STORE)
+        if static:
+            c_tf = writer.add_connection("/tf_static", "tf2_msgs/msg/TFMessage", typestore=STORE)
+            for k, transform in enumerate(static):
+                writer.write(c_tf, k, serialize(tf_message(*transform), "tf2_msgs/msg/TFMessage"))
         poses = log.poses
-        for k, scan in enumerate(log.scans):
+        for k, item in enumerate(log.scans):
             if odometry:
-                stops = [(scan.timestamp, poses[k])]
+                stops = [(item.timestamp, poses[k])]
                 if k + 1 < len(log):
-                    stops.append((scan.timestamp + 0.5, 0.5 * (poses[k] + poses[k + 1])))
+                    stops.append((item.timestamp + 0.5, 0.5 * (poses[k] + poses[k + 1])))
                 for t, p in stops:
                     writer.write(c_odom, int(t * 1e9), serialize(odom(t, *p, scale), "nav_msgs/msg/Odometry"))
             if scans:
-                writer.write(c_scan, int((scan.timestamp + 0.25) * 1e9),
-                             serialize(scan_msg(scan), "sensor_msgs/msg/LaserScan"))
+                writer.write(c_scan, int((item.timestamp + 0.25) * 1e9),
+                             serialize((scan or scan_msg)(item), "sensor_msgs/msg/LaserScan"))
 
 
 @pytest.fixture(scope="module")
@@ -190,7 +210,7 @@ def test_odometry_stamped_twice(run, tmp_path):
             for t, p in [(0.0, (0.0, 0.0, 0.0)), (1.0, (1.0, 0.0, 0.0)), (1.0, second), (2.0, (2.0, 0.0, 0.0))]:
                 writer.write(c_odom, int(t * 1e9), STORE.serialize_cdr(odom(t, *p), "nav_msgs/msg/Odometry"))
             for t in (0.5, 1.5):                        # (scan_msg stamps a scan 0.25 s after its own time)
-                msg = scan_msg(dataclasses.replace(run.log.scans[0], timestamp=t - 0.25))
+                msg = scan_msg(dataclasses.replace(run.log.scans[0], timestamp=t - 0.25), "base_link")
                 writer.write(c_scan, int(t * 1e9), STORE.serialize_cdr(msg, "sensor_msgs/msg/LaserScan"))
 
     bag(tmp_path / "copy", (1.0, 0.0, 0.0))
@@ -199,3 +219,134 @@ def test_odometry_stamped_twice(run, tmp_path):
     bag(tmp_path / "two", (1.3, 0.0, 0.0))
     with pytest.raises(LogFormatError, match="stamped 1.0 s with different poses"):
         read_rosbag(tmp_path / "two")
+
+
+def _pose2(a, b):
+    """a (+) b for (x, y, theta), written out here (the test's own SE(2))."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
+
+
+def _inverse2(a):
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], -a[2]])
+
+
+def _yaw_quaternion(yaw):
+    return (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+
+
+def _base_run(run, mount):
+    """The run's scans with the odometry of a base the laser sits on at ``mount``: the log's poses
+    are the laser's, so the base's are laser (+) mount^-1."""
+    import dataclasses
+
+    from taichi_match.logs import LaserLog
+
+    base = np.array([_pose2(p, _inverse2(mount)) for p in run.log.poses])
+    scans = tuple(dataclasses.replace(s, pose=b) for s, b in zip(run.log.scans, base))
+    return LaserLog(scans, run.log.odometry)
+
+
+def _expected_laser_poses(log, mount):
+    """Each read scan's expected pose: the base's odometry interpolated a quarter of the way to the
+    next (as ``test_bag_round_trip``), then the mount."""
+    out = []
+    for k in range(len(log.scans) - 1):
+        a, b = log.poses[k], log.poses[k + 1]
+        base = a + 0.25 * np.array([b[0] - a[0], b[1] - a[1], math.remainder(b[2] - a[2], 2 * math.pi)])
+        out.append(_pose2(base, mount))
+    return np.array(out)
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_a_laser_off_the_base_is_placed_by_tf_static(run, tmp_path, ros1):
+    # a chain base_link -> mast -> laser in /tf_static (the heights and a small roll do not count);
+    # each scan then sits at the base's odometry (+) the laser's mounting on the floor plane
+    mast, on_mast = (0.1, 0.0, 0.1), (0.2, -0.1, 0.25)
+    mount = _pose2(mast, on_mast)
+    roll = math.radians(2.0)                      # level within the tolerance: a roll about the laser's x
+    q_mast = _yaw_quaternion(mast[2])
+    q_laser = (math.sin(roll / 2) * math.cos(on_mast[2] / 2), math.sin(roll / 2) * math.sin(on_mast[2] / 2),
+               math.cos(roll / 2) * math.sin(on_mast[2] / 2), math.cos(roll / 2) * math.cos(on_mast[2] / 2))
+    static = [("base_link", "mast", (mast[0], mast[1], 0.4), q_mast),
+              ("mast", "laser", (on_mast[0], on_mast[1], 0.3), q_laser)]
+    log = _base_run(run, mount)
+    path = tmp_path / ("run.bag" if ros1 else "run")
+    write_bag(path, log, ros1=ros1, static=static)
+    got, _ = read_rosbag(path)
+    want = _expected_laser_poses(log, mount)
+    poses = np.array([s.pose for s in got.scans])
+    np.testing.assert_allclose(poses[:, :2], want[:, :2], atol=1e-9)
+    np.testing.assert_allclose(np.remainder(poses[:, 2] - want[:, 2] + math.pi, 2 * math.pi) - math.pi, 0.0,
+                               atol=1e-9)
+    # and against the simulated truth: the laser's own poses, to the interpolation's error
+    assert np.abs(poses[:, :2] - run.log.poses[:-1, :2]).max() < 0.3
+    # the same mounting given instead of read (a bag without /tf_static)
+    write_bag(tmp_path / "bare", log, static=None)
+    given, _ = read_rosbag(tmp_path / "bare", laser_pose=mount)
+    np.testing.assert_allclose([s.pose for s in given.scans], [s.pose for s in got.scans], atol=1e-12)
+
+
+def test_an_upside_down_laser_has_its_angles_negated(run, tmp_path):
+    # a laser mounted upside down (rolled half a turn) at a heading: its scans, as it sends them,
+    # sweep the other way; read, they are the upright laser's again
+    mount = (0.15, 0.05, 0.4)
+    static = [("base_link", "laser", (mount[0], mount[1], 0.2), (math.cos(mount[2] / 2), math.sin(mount[2] / 2),
+                                                                   0.0, 0.0))]
+
+    def mirrored(item):
+        msg = scan_msg(item)
+        msg.angle_min, msg.angle_max, msg.angle_increment = -msg.angle_min, -msg.angle_max, -msg.angle_increment
+        return msg
+
+    log = _base_run(run, mount)
+    write_bag(tmp_path / "run", log, static=static, scan=mirrored)
+    got, _ = read_rosbag(tmp_path / "run")
+    for read, sent in zip(got.scans, run.log.scans):
+        np.testing.assert_allclose(read.angles, sent.angles, atol=1e-6)
+        np.testing.assert_allclose(read.ranges, sent.ranges, atol=1e-5)
+    want = _expected_laser_poses(log, mount)
+    np.testing.assert_allclose([s.pose[:2] for s in got.scans], want[:, :2], atol=1e-9)
+
+
+def test_a_tilted_laser_or_an_unknown_mount(run, tmp_path):
+    from taichi_match import InvalidOptionError
+    from taichi_match.bags import LaserMountWarning
+
+    pitch = math.radians(20.0)                    # the beams would sweep a cone, not the floor
+    write_bag(tmp_path / "tilted", run.log, static=[("base_link", "laser", (0.0, 0.0, 0.0),
+                                                     (0.0, math.sin(pitch / 2), 0.0, math.cos(pitch / 2)))])
+    with pytest.raises(LogFormatError, match="tilted 20.0 degrees"):
+        read_rosbag(tmp_path / "tilted")
+    write_bag(tmp_path / "zero", run.log, static=[("base_link", "laser", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0))])
+    with pytest.raises(LogFormatError, match="unit quaternion"):
+        read_rosbag(tmp_path / "zero")
+    write_bag(tmp_path / "unknown", run.log, static=None)    # frames "base_link" and "laser", no transform
+    with pytest.warns(LaserMountWarning, match="'laser'"):
+        unknown, _ = read_rosbag(tmp_path / "unknown")
+    plain, _ = read_rosbag(tmp_path / "unknown", laser_pose=(0.0, 0.0, 0.0))
+    assert all(np.array_equal(a.pose, b.pose) for a, b in zip(unknown.scans, plain.scans))
+    for bad in [(0.0, 0.0), (0.0, float("nan"), 0.0), (500.0, 0.0, 0.0), "abc"]:
+        with pytest.raises(InvalidOptionError, match="laser_pose"):
+            read_rosbag(tmp_path / "unknown", laser_pose=bad)
+
+
+def test_cli_slam_laser_pose(run, tmp_path, capsys):
+    # a bag that does not say where its laser sits: one warning line, the run goes on; --laser-pose
+    # says it (no warning); on a CARMEN log the flag is refused (its scans carry the laser's pose)
+    pytest.importorskip("gtsam")
+    from taichi_match.cli import main
+    from taichi_match.logs import write_carmen
+
+    write_bag(tmp_path / "bare", run.log, static=None)
+    capsys.readouterr()
+    assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert err.count("taichi-match: warning: ") == 1 and "'laser'" in err and "Traceback" not in err
+    assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "b"), "--laser-pose", "0", "0", "0"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert ((tmp_path / "a" / "trajectory.tum").read_text() == (tmp_path / "b" / "trajectory.tum").read_text())
+    write_carmen(tmp_path / "run.log", run.log)
+    assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "c"), "--laser-pose", "0", "0", "0"]) == 2
+    assert "--laser-pose applies to ROS bags only" in capsys.readouterr().err
