@@ -103,32 +103,54 @@ def _rotation(q):
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
+def _up_to_root(transforms, frame: str) -> dict:
+    """{ancestor: (rotation, translation) of ``frame`` in it} for ``frame`` and each frame above it
+    (``transforms`` as ``laser_mount`` takes them), up to the root or a cycle. A transform without a
+    finite translation within ``MAX_MOUNT_M`` and a unit quaternion is a LogFormatError."""
+    rotation, translation = np.eye(3), np.zeros(3)
+    chain = {frame: (rotation, translation)}
+    while frame in transforms:
+        parent, t, q = transforms[frame]
+        parent = parent.lstrip("/")
+        q, t = np.asarray(q, dtype=np.float64), np.asarray(t, dtype=np.float64)
+        if not (np.all(np.isfinite(t)) and np.abs(t).max() <= MAX_MOUNT_M and np.all(np.isfinite(q))
+                and abs(np.linalg.norm(q) - 1.0) <= 1e-3):
+            raise LogFormatError(f"the static transform from {parent!r} to {frame!r} needs a finite translation "
+                                 f"within {MAX_MOUNT_M:g} m (metres) and a unit quaternion; got {tuple(t)}, {tuple(q)}")
+        step = _rotation(q / np.linalg.norm(q))
+        rotation, translation = step @ rotation, step @ translation + t
+        if parent in chain:                   # a cycle: no root above
+            break
+        chain[parent] = (rotation, translation)
+        frame = parent
+    return chain
+
+
 def laser_mount(transforms, base: str, laser: str):
     """The laser's mounting on the floor plane: ((x, y, theta) of the laser frame in the base frame,
     upside_down), from ``transforms``, {child frame: (parent frame, (tx, ty, tz), (qx, qy, qz, qw))}
-    as ``geometry_msgs/TransformStamped`` give them (``/tf_static``); None when no chain of them
-    leads from ``base`` up to ``laser``'s ancestors. The laser must be level or upside down (its z
-    axis within ``LEVEL_TOLERANCE`` of the base's or of its opposite), else LogFormatError: its
-    beams would not sweep the floor plane.
+    as ``geometry_msgs/TransformStamped`` give them (``/tf_static``): through the nearest frame
+    both lie under (either may be the other's ancestor); None when no transforms join them. Each
+    transform must hold a finite translation within ``MAX_MOUNT_M`` and a unit quaternion, and the
+    laser be level or upside down (its z axis within ``LEVEL_TOLERANCE`` of the base's or of its
+    opposite), else LogFormatError: its beams would not sweep the floor plane.
     """
-    base, frame = base.lstrip("/"), laser.lstrip("/")
-    rotation, translation, seen = np.eye(3), np.zeros(3), set()
-    while frame != base:                      # up from the laser: base_T_laser = parent_T_frame ...
-        if frame not in transforms or frame in seen:
-            return None
-        seen.add(frame)
-        parent, t, q = transforms[frame]
-        q, t = np.asarray(q, dtype=np.float64), np.asarray(t, dtype=np.float64)
-        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q)) and abs(np.linalg.norm(q) - 1.0) <= 1e-3):
-            raise LogFormatError(f"the static transform from {parent!r} to {frame!r} needs a finite translation "
-                                 f"and a unit quaternion; got {tuple(t)}, {tuple(q)}")
-        step = _rotation(q / np.linalg.norm(q))
-        rotation, translation = step @ rotation, step @ translation + t
-        frame = parent.lstrip("/")
+    base, laser = base.lstrip("/"), laser.lstrip("/")
+    above_base, above_laser = _up_to_root(transforms, base), _up_to_root(transforms, laser)
+    common = next((frame for frame in above_laser if frame in above_base), None)
+    if common is None:
+        return None
+    r_base, t_base = above_base[common]
+    r_laser, t_laser = above_laser[common]
+    rotation, translation = r_base.T @ r_laser, r_base.T @ (t_laser - t_base)      # base_T_laser
+    if np.abs(translation).max() > MAX_MOUNT_M:
+        raise LogFormatError(f"the laser's frame {laser!r} lies {np.abs(translation).max():.3g} m from {base!r} "
+                             f"in the static transforms: more than {MAX_MOUNT_M:g} m (metres expected)")
     up = rotation[2, 2]                       # the laser's z axis against the base's
     if abs(up) < math.cos(LEVEL_TOLERANCE):
-        raise LogFormatError(f"the laser's frame {laser!r} is tilted {math.degrees(math.acos(min(abs(up), 1.0))):.1f} "
-                             f"degrees from level in {base!r}: its beams do not sweep the floor plane")
+        tilt = math.degrees(math.acos(min(abs(up), 1.0)))
+        raise LogFormatError(f"the laser's frame {laser!r} is tilted {tilt:.2f} degrees from level in {base!r} "
+                             f"(at most {math.degrees(LEVEL_TOLERANCE):g}): its beams do not sweep the floor plane")
     theta = math.atan2(rotation[1, 0], rotation[0, 0])
     return (float(translation[0]), float(translation[1]), theta), bool(up < 0)
 
@@ -153,12 +175,14 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
     mount = None
     if laser_pose is not None:
         try:
-            given = np.asarray(laser_pose, dtype=np.float64)
-        except (TypeError, ValueError):
+            given = np.asarray(laser_pose)
+            given = given.astype(np.float64) if given.dtype.kind in "iuf" else np.full(3, np.nan)
+        except (TypeError, ValueError, OverflowError):
             given = np.full(3, np.nan)
-        if given.shape != (3,) or not np.all(np.isfinite(given)) or np.abs(given[:2]).max() > MAX_MOUNT_M:
-            raise InvalidOptionError(f"laser_pose must be three finite numbers (x, y, theta), x and y within "
-                                     f"{MAX_MOUNT_M:g} m; got {laser_pose!r}")
+        if (given.shape != (3,) or not np.all(np.isfinite(given)) or np.abs(given[:2]).max() > MAX_MOUNT_M
+                or abs(given[2]) > 2 * math.pi):
+            raise InvalidOptionError(f"laser_pose must be three numbers (x, y, theta): x and y metres within "
+                                     f"{MAX_MOUNT_M:g}, theta radians within 2 pi; got {laser_pose!r}")
         mount = (tuple(float(v) for v in given), False)
     path = Path(path)
     bag = path.parent if path.suffix in (".db3", ".mcap") else path
@@ -177,7 +201,7 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
                         static[tf.child_frame_id.lstrip("/")] = (tf.header.frame_id, (t.x, t.y, t.z),
                                                                  (q.x, q.y, q.z, q.w))
                 elif connection.topic == odom_name:
-                    bases.add(msg.child_frame_id)
+                    bases.add(msg.child_frame_id.lstrip("/"))
                     p, q = msg.pose.pose.position, msg.pose.pose.orientation
                     if not abs(math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w) - 1.0) <= 1e-3:
                         raise LogFormatError(f"{path}: an odometry orientation that is not a unit quaternion "
@@ -207,8 +231,7 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
         raise LogFormatError(f"{path}: fewer than two Odometry messages at different stamps "
                              "(a log without odometry cannot be mapped)")
     heading = np.unwrap(odo[:, 3])
-    if mount is None:
-        mount = _mount_from_bag(path, static, bases, scans)
+    mount = _mount_from_bag(path, static, bases, scans, mount)
     (mx, my, mtheta), upside_down = mount
     out, left_out = [], 0
     for msg in sorted(scans, key=lambda m: _stamp(m.header)):
@@ -230,26 +253,39 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
     return LaserLog(tuple(out), odo), left_out
 
 
-def _mount_from_bag(path, static, bases, scans):
-    """``laser_mount`` from the bag's static transforms, from the odometry's child frame to the
-    first scan's frame: identity when they are one frame or unnamed; identity with a
-    ``LaserMountWarning`` when no static transform joins them."""
-    if len(bases) > 1:
-        raise LogFormatError(f"{path}: the odometry moves several frames {sorted(bases)}; name one topic")
-    base = next(iter(bases), "").lstrip("/")
+def _mount_from_bag(path, static, bases, scans, given):
+    """The scans' mounting: ``given`` (``laser_pose``), with a ``LaserMountWarning`` when the bag's
+    static transforms say otherwise; else ``laser_mount`` from the odometry's child frame to the
+    scans' frame: identity when they are one frame; identity with a ``LaserMountWarning`` when one is
+    unnamed or no static transform joins them."""
+    def warn(text):
+        warnings.warn(f"{path}: {text}", LaserMountWarning, stacklevel=4)
+
     frames = {msg.header.frame_id.lstrip("/") for msg in scans}
-    if len(frames) > 1:
+    if given is None and len(bases) > 1:
+        raise LogFormatError(f"{path}: the odometry moves several frames {sorted(bases)}; name one topic")
+    if given is None and len(frames) > 1:
         raise LogFormatError(f"{path}: the LaserScan messages come in several frames {sorted(frames)}")
-    laser = frames.pop()
-    if not base or not laser or base == laser:
-        return (0.0, 0.0, 0.0), False
+    base, laser = (next(iter(bases)) if len(bases) == 1 else ""), (next(iter(frames)) if len(frames) == 1 else "")
     try:
-        mount = laser_mount(static, base, laser)
+        found = laser_mount(static, base, laser) if base and laser and base != laser else None
     except LogFormatError as exc:
-        raise LogFormatError(f"{path}: {exc}") from None
-    if mount is None:
-        warnings.warn(f"{path}: no static transform (/tf_static) from the odometry's frame {base!r} to the scans' "
-                      f"frame {laser!r}: the laser is taken to sit at {base!r} (give its pose: laser_pose, "
-                      f"--laser-pose)", LaserMountWarning, stacklevel=3)
+        if given is None:
+            raise LogFormatError(f"{path}: {exc}") from None
+        found = None
+    if given is not None:
+        if found is not None and (found[1] or not np.allclose(found[0], given[0], rtol=0.0, atol=1e-3)):
+            warn(f"laser_pose {given[0]} differs from the bag's static transforms from {base!r} to {laser!r}: "
+                 f"{found[0]}{', upside down' if found[1] else ''}; laser_pose is used, level")
+        return given
+    if base and base == laser:
         return (0.0, 0.0, 0.0), False
-    return mount
+    if found is None:
+        if not base or not laser:
+            warn(f"the odometry's child frame {base!r} or the scans' frame {laser!r} is unnamed: the laser is taken "
+                 f"to sit at the robot's base (give its pose: laser_pose, --laser-pose)")
+        else:
+            warn(f"no static transform (/tf_static) joins the odometry's frame {base!r} and the scans' frame "
+                 f"{laser!r}: the laser is taken to sit at {base!r} (give its pose: laser_pose, --laser-pose)")
+        return (0.0, 0.0, 0.0), False
+    return found

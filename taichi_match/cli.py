@@ -391,8 +391,12 @@ def _slam(args):
 
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", LaserMountWarning)
-            log, left_out = read_rosbag(args.log, scan_topic=args.scan_topic, odometry_topic=args.odom_topic,
-                                        laser_pose=args.laser_pose)
+            try:
+                log, left_out = read_rosbag(args.log, scan_topic=args.scan_topic, odometry_topic=args.odom_topic,
+                                            laser_pose=args.laser_pose)
+            except InvalidOptionError as exc:         # name the flag the user typed
+                text = f"--laser-pose: {exc}" if str(exc).startswith("laser_pose") else str(exc)
+                raise InvalidOptionError(text) from None
         for warning in caught:                        # ours as a line; any other as Python shows it
             if issubclass(warning.category, LaserMountWarning):
                 print(f"taichi-match: warning: {warning.message}", file=sys.stderr)

@@ -317,7 +317,7 @@ def test_a_tilted_laser_or_an_unknown_mount(run, tmp_path):
     pitch = math.radians(20.0)                    # the beams would sweep a cone, not the floor
     write_bag(tmp_path / "tilted", run.log, static=[("base_link", "laser", (0.0, 0.0, 0.0),
                                                      (0.0, math.sin(pitch / 2), 0.0, math.cos(pitch / 2)))])
-    with pytest.raises(LogFormatError, match="tilted 20.0 degrees"):
+    with pytest.raises(LogFormatError, match="tilted 20.00 degrees"):
         read_rosbag(tmp_path / "tilted")
     write_bag(tmp_path / "zero", run.log, static=[("base_link", "laser", (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0))])
     with pytest.raises(LogFormatError, match="unit quaternion"):
@@ -327,7 +327,8 @@ def test_a_tilted_laser_or_an_unknown_mount(run, tmp_path):
         unknown, _ = read_rosbag(tmp_path / "unknown")
     plain, _ = read_rosbag(tmp_path / "unknown", laser_pose=(0.0, 0.0, 0.0))
     assert all(np.array_equal(a.pose, b.pose) for a, b in zip(unknown.scans, plain.scans))
-    for bad in [(0.0, 0.0), (0.0, float("nan"), 0.0), (500.0, 0.0, 0.0), "abc"]:
+    for bad in [(0.0, 0.0), (0.0, float("nan"), 0.0), (500.0, 0.0, 0.0), "abc", (0.0, 0.0, 1e300), (0, 0, 90),
+                (True, False, True), (10**400, 0, 0)]:
         with pytest.raises(InvalidOptionError, match="laser_pose"):
             read_rosbag(tmp_path / "unknown", laser_pose=bad)
 
@@ -347,6 +348,52 @@ def test_cli_slam_laser_pose(run, tmp_path, capsys):
     assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "b"), "--laser-pose", "0", "0", "0"]) == 0
     assert "warning" not in capsys.readouterr().err
     assert ((tmp_path / "a" / "trajectory.tum").read_text() == (tmp_path / "b" / "trajectory.tum").read_text())
+    assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "d"), "--laser-pose", "0", "0", "90"]) == 2
+    assert "taichi-match: error: --laser-pose: " in capsys.readouterr().err       # radians, not degrees
     write_carmen(tmp_path / "run.log", run.log)
     assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "c"), "--laser-pose", "0", "0", "0"]) == 2
     assert "--laser-pose applies to ROS bags only" in capsys.readouterr().err
+
+
+def test_the_mount_through_a_common_ancestor_and_its_limits(run, tmp_path):
+    # the transforms need not run from the base down to the laser: the laser may be the base's
+    # parent, or both hang under a third frame; a mounting in millimetres (300 "m") is refused, an
+    # unnamed frame warned, and a laser_pose that contradicts the bag warned too
+    from taichi_match.bags import LaserMountWarning
+
+    mount = (0.3, -0.1, 0.25)
+    log = _base_run(run, mount)
+    footprint = (0.05, 0.02, -0.2)                 # base_footprint -> base_link
+    laser_in_footprint = _pose2(footprint, mount)
+    inverse = _inverse2(mount)                     # laser -> base_link
+    layouts = {
+        "parent": [("laser", "base_link", (inverse[0], inverse[1], -0.2), _yaw_quaternion(inverse[2]))],
+        "siblings": [("base_footprint", "base_link", (footprint[0], footprint[1], 0.1), _yaw_quaternion(footprint[2])),
+                     ("base_footprint", "laser", (laser_in_footprint[0], laser_in_footprint[1], 0.3),
+                      _yaw_quaternion(laser_in_footprint[2]))],
+    }
+    want = _expected_laser_poses(log, mount)
+    for name, static in layouts.items():
+        write_bag(tmp_path / name, log, static=static)
+        got, _ = read_rosbag(tmp_path / name)
+        np.testing.assert_allclose([s.pose[:2] for s in got.scans], want[:, :2], atol=1e-9, err_msg=name)
+    write_bag(tmp_path / "mm", log, static=[("base_link", "laser", (300.0, -100.0, 0.0), _yaw_quaternion(0.25))])
+    with pytest.raises(LogFormatError, match="within 100 m"):
+        read_rosbag(tmp_path / "mm")
+    write_bag(tmp_path / "given", log, static=layouts["parent"])
+    with pytest.warns(LaserMountWarning, match="differs from the bag"):
+        read_rosbag(tmp_path / "given", laser_pose=(0.0, 0.0, 0.0))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LaserMountWarning)
+        read_rosbag(tmp_path / "given", laser_pose=mount)        # the same mounting: no warning
+
+    def unnamed(item):
+        msg = scan_msg(item)
+        msg.header.frame_id = ""
+        return msg
+
+    write_bag(tmp_path / "unnamed", log, static=layouts["parent"], scan=unnamed)
+    with pytest.warns(LaserMountWarning, match="unnamed"):
+        read_rosbag(tmp_path / "unnamed")
