@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import InvalidOptionError, LogFileError, LogFormatError
+from ._se2 import compose, wrap_angle
 from .logs import _MAX_BEAMS as MAX_BEAMS
 from .logs import MAX_ANGLE, MAX_COORDINATE, LaserLog, Scan, yaw_of_quaternion
 
@@ -92,7 +93,6 @@ def scan_from_laserscan(msg, pose, *, upside_down: bool = False) -> Scan:
     for array in (r, angles, pose):
         array.setflags(write=False)
     return Scan(float(t), r, angles, pose, max_range)
-
 
 
 def _rotation(q):
@@ -231,8 +231,7 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
         raise LogFormatError(f"{path}: fewer than two Odometry messages at different stamps "
                              "(a log without odometry cannot be mapped)")
     heading = np.unwrap(odo[:, 3])
-    mount = _mount_from_bag(path, static, bases, scans, mount)
-    (mx, my, mtheta), upside_down = mount
+    mount, upside_down = _mount_from_bag(path, static, bases, scans, mount)
     out, left_out = [], 0
     for msg in sorted(scans, key=lambda m: _stamp(m.header)):
         t = _stamp(msg.header)
@@ -241,9 +240,7 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
             continue
         pose = np.array([np.interp(t, odo[:, 0], odo[:, 1]), np.interp(t, odo[:, 0], odo[:, 2]),
                          np.interp(t, odo[:, 0], heading)])
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        pose = np.array([pose[0] + c * mx - s * my, pose[1] + s * mx + c * my, pose[2] + mtheta])
-        pose[2] = np.arctan2(np.sin(pose[2]), np.cos(pose[2]))
+        pose = compose(pose, mount)                   # the laser's pose, its heading wrapped
         try:
             out.append(scan_from_laserscan(msg, pose, upside_down=upside_down))
         except LogFormatError as exc:
@@ -274,7 +271,9 @@ def _mount_from_bag(path, static, bases, scans, given):
             raise LogFormatError(f"{path}: {exc}") from None
         found = None
     if given is not None:
-        if found is not None and (found[1] or not np.allclose(found[0], given[0], rtol=0.0, atol=1e-3)):
+        apart = np.subtract(found[0], given[0]) if found is not None else np.zeros(3)
+        apart[2] = wrap_angle(apart[2])
+        if found is not None and (found[1] or np.abs(apart).max() > 1e-3):
             warn(f"laser_pose {given[0]} differs from the bag's static transforms from {base!r} to {laser!r}: "
                  f"{found[0]}{', upside down' if found[1] else ''}; laser_pose is used, level")
         return given
