@@ -133,14 +133,8 @@ class PreparedMap:
         ratio = frame.resolution / self.blur_width if width > 0 else 0.0
         self._stamp = few
         if few:
-            # a coarse level of a trinary map (codes and their table) goes by the grey stamps even
-            # when its walls all weigh 1 (0-20 times a run of the mapping loop): the same bits (the
-            # profile never increases), one kernel variant fewer for a process to load (0.1-0.16 s
-            # from Taichi's offline cache); its squared distances are not kept (the verdict reads
-            # the finest level's)
-            coded = prob is not None and np.ndim(prob) == 1
-            self.conflict, self._squared = near_conflict_grid(known, prob, reach, ratio, self.walls,
-                                                              squared=ones and not coded)
+            # (a coarse level of codes keeps no squared distances: the verdict reads the finest's)
+            self.conflict, self._squared = near_conflict_grid(known, prob, reach, ratio, self.walls, squared=ones)
         else:
             self.conflict = conflict_grid(self._envelope(ones, keep_distances=True), known == 0)
         return n_known

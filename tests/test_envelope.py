@@ -848,6 +848,7 @@ def test_a_map_of_codes_and_their_probabilities_prepares_as_its_probabilities(re
         got, _ = near_conflict_grid(blocks, table, 13, 0.5, (rows, cols, table[blocks][rows, cols]))
         want, _ = near_conflict_grid(blocks != 0, table[blocks], 13, 0.5, (rows, cols, table[blocks][rows, cols]))
         assert got.tobytes() == want.tobytes()
-        if walls_at_one:                               # squared distances are for maps without codes
-            with pytest.raises(ValueError, match="grey stamps"):
-                near_conflict_grid(blocks, table, 13, 0.5, (rows, cols, table[blocks][rows, cols]), squared=True)
+        if walls_at_one:                               # codes go by the grey stamps: no squared distances
+            stamped, distances = near_conflict_grid(blocks, table, 13, 0.5, (rows, cols, table[blocks][rows, cols]),
+                                                    squared=True)
+            assert distances is None and stamped.tobytes() == want.tobytes()
