@@ -58,12 +58,12 @@ def output_paths(folder, *, force: bool = False, keep=()) -> dict:
     return paths
 
 
-def write_outputs(result, folder, *, source: str = "", force: bool = False, keep=()) -> dict:
+def write_outputs(result, folder, *, source: str = "", force: bool = False, keep=(), notes=()) -> dict:
     """Write ``trajectory.tum``, ``map.yaml`` + ``map.pgm``, ``graph.g2o`` and ``report.md`` into
     ``folder`` (created if missing), after ``output_paths``'s checks. All five are written to a
     temporary folder inside ``folder`` first and then moved into place together, with SIGINT,
     SIGTERM and SIGHUP held back meanwhile: a failure leaves the old outputs, not a mix of old and
-    new. Returns {name: path}."""
+    new. ``notes``: lines for report.md about the input (``report``). Returns {name: path}."""
     import shutil
     import tempfile
     from pathlib import Path
@@ -87,7 +87,7 @@ def write_outputs(result, folder, *, source: str = "", force: bool = False, keep
             write_tum(staged["trajectory"], result.timestamps, result.poses)
             _write_g2o(gtsam, result, staged["graph"])
             # (a log's name that is not UTF-8 is written escaped)
-            staged["report"].write_text(report(result, source), encoding="utf-8", errors="backslashreplace")
+            staged["report"].write_text(report(result, source, notes), encoding="utf-8", errors="backslashreplace")
             with io._signals_held():
                 for name, path in paths.items():
                     staged[name].replace(path)
@@ -165,12 +165,14 @@ def jump_summary(result) -> str:
     return said
 
 
-def report(result, source: str = "") -> str:
-    """The run's settings, counts and time per stage as Markdown."""
+def report(result, source: str = "", notes=()) -> str:
+    """The run's settings, counts and time per stage as Markdown; ``notes``, lines about the input
+    (a bag's laser mounting), listed first."""
     n = len(result.poses)
     total = sum(result.seconds.values())
     accepted, tried = result.scan_matches
     lines = ["# taichi-match slam", "", f"Input: `{source}`" if source else "", "",
+             *(f"- {note}" for note in notes),
              f"- scans: {n}; submaps of {result.options.submap_scans} scans at {result.options.resolution} m",
              f"- scan-to-submap matches accepted: {accepted} of {tried}",
              f"- {loop_summary(result)} (in the graph: accepted, consistent with their neighbours and at the end "

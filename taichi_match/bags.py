@@ -231,7 +231,7 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
         raise LogFormatError(f"{path}: fewer than two Odometry messages at different stamps "
                              "(a log without odometry cannot be mapped)")
     heading = np.unwrap(odo[:, 3])
-    mount, upside_down = _mount_from_bag(path, static, bases, scans, mount)
+    (mount, upside_down), said = _mount_from_bag(path, static, bases, scans, mount)
     out, left_out = [], 0
     for msg in sorted(scans, key=lambda m: _stamp(m.header)):
         t = _stamp(msg.header)
@@ -247,14 +247,16 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
             raise LogFormatError(f"{path}: {exc}") from None
     if not out:
         raise LogFormatError(f"{path}: no LaserScan inside the odometry's time span")
-    return LaserLog(tuple(out), odo), left_out
+    x, y, theta = mount
+    said = f"x {x:.4g} m, y {y:.4g} m, theta {theta:.4g} rad{', upside down' if upside_down else ''} ({said})"
+    return LaserLog(tuple(out), odo, laser_mount=said), left_out
 
 
 def _mount_from_bag(path, static, bases, scans, given):
-    """The scans' mounting: ``given`` (``laser_pose``), with a ``LaserMountWarning`` when the bag's
-    static transforms say otherwise; else ``laser_mount`` from the odometry's child frame to the
-    scans' frame: identity when they are one frame; identity with a ``LaserMountWarning`` when one is
-    unnamed or no static transform joins them."""
+    """The scans' mounting and where it came from, in words: ``given`` (``laser_pose``), with a
+    ``LaserMountWarning`` when the bag's static transforms say otherwise; else ``laser_mount`` from
+    the odometry's child frame to the scans' frame: identity when they are one frame; identity with
+    a ``LaserMountWarning`` when one is unnamed or no static transform joins them."""
     def warn(text):
         warnings.warn(f"{path}: {text}", LaserMountWarning, stacklevel=4)
 
@@ -276,9 +278,9 @@ def _mount_from_bag(path, static, bases, scans, given):
         if found is not None and (found[1] or np.abs(apart).max() > 1e-3):
             warn(f"laser_pose {given[0]} differs from the bag's static transforms from {base!r} to {laser!r}: "
                  f"{found[0]}{', upside down' if found[1] else ''}; laser_pose is used, level")
-        return given
+        return given, "as given: laser_pose"
     if base and base == laser:
-        return (0.0, 0.0, 0.0), False
+        return ((0.0, 0.0, 0.0), False), f"the scans' frame is the odometry's, {base!r}"
     if found is None:
         if not base or not laser:
             warn(f"the odometry's child frame {base!r} or the scans' frame {laser!r} is unnamed: the laser is taken "
@@ -286,5 +288,5 @@ def _mount_from_bag(path, static, bases, scans, given):
         else:
             warn(f"no static transform (/tf_static) joins the odometry's frame {base!r} and the scans' frame "
                  f"{laser!r}: the laser is taken to sit at {base!r} (give its pose: laser_pose, --laser-pose)")
-        return (0.0, 0.0, 0.0), False
-    return found
+        return ((0.0, 0.0, 0.0), False), "taken to sit at the robot's base: no transform found"
+    return found, f"the bag's /tf_static from {base!r} to {laser!r}"

@@ -441,7 +441,9 @@ def _slam(args):
         options = dataclasses.replace(options, scan_matcher=options.scan_matcher.replace(**front_end))
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
-    paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference))
+    notes = [f"the laser on the robot: {log.laser_mount}"] if log.laser_mount else []
+    paths = write_outputs(result, args.out, source=args.log, force=args.force, keep=(args.log, args.reference),
+                          notes=notes)
     accepted, tried = result.scan_matches
     seconds = sum(result.seconds.values())
     print(f"{len(log)} scans in {seconds:.1f} s ({1e3 * seconds / len(log):.1f} ms per scan); scan matches accepted "

@@ -28,6 +28,7 @@ import math
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -59,10 +60,13 @@ class Scan:
 
 @dataclass(frozen=True)
 class LaserLog:
-    """The scans of a log in file order, and its ODOM lines as (timestamp, x, y, theta) rows."""
+    """The scans of a log in file order, and its ODOM lines as (timestamp, x, y, theta) rows.
+    ``laser_mount``: how a bag's scans were placed on the robot, in words (``bags.read_rosbag``);
+    None for a CARMEN log, whose scans carry the laser's own pose."""
 
     scans: tuple
     odometry: np.ndarray
+    laser_mount: Optional[str] = None
 
     @property
     def poses(self) -> np.ndarray:

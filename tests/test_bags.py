@@ -286,6 +286,10 @@ def test_a_laser_off_the_base_is_placed_by_tf_static(run, tmp_path, ros1):
     write_bag(tmp_path / "bare", log, static=None)
     given, _ = read_rosbag(tmp_path / "bare", laser_pose=mount)
     np.testing.assert_allclose([s.pose for s in given.scans], [s.pose for s in got.scans], atol=1e-12)
+    # the log says where the laser sits and how that was found (for report.md)
+    words = f"x {mount[0]:.4g} m, y {mount[1]:.4g} m, theta {mount[2]:.4g} rad"
+    assert got.laser_mount == f"{words} (the bag's /tf_static from 'base_link' to 'laser')"
+    assert given.laser_mount == f"{words} (as given: laser_pose)"
 
 
 def test_an_upside_down_laser_has_its_angles_negated(run, tmp_path):
@@ -308,6 +312,7 @@ def test_an_upside_down_laser_has_its_angles_negated(run, tmp_path):
         np.testing.assert_allclose(read.ranges, sent.ranges, atol=1e-5)
     want = _expected_laser_poses(log, mount)
     np.testing.assert_allclose([s.pose[:2] for s in got.scans], want[:, :2], atol=1e-9)
+    assert ", upside down (the bag's /tf_static" in got.laser_mount
 
 
 def test_a_tilted_laser_or_an_unknown_mount(run, tmp_path):
@@ -345,14 +350,19 @@ def test_cli_slam_laser_pose(run, tmp_path, capsys):
     assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
     assert err.count("taichi-match: warning: ") == 1 and "'laser'" in err and "Traceback" not in err
+    assert ("- the laser on the robot: x 0 m, y 0 m, theta 0 rad (taken to sit at the robot's base: no transform "
+            "found)") in (tmp_path / "a" / "report.md").read_text()
     assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "b"), "--laser-pose", "0", "0", "0"]) == 0
     assert "warning" not in capsys.readouterr().err
+    assert "(as given: laser_pose)" in (tmp_path / "b" / "report.md").read_text()
     assert ((tmp_path / "a" / "trajectory.tum").read_text() == (tmp_path / "b" / "trajectory.tum").read_text())
     assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "d"), "--laser-pose", "0", "0", "90"]) == 2
     assert "taichi-match: error: --laser-pose: " in capsys.readouterr().err       # radians, not degrees
     write_carmen(tmp_path / "run.log", run.log)
     assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "c"), "--laser-pose", "0", "0", "0"]) == 2
     assert "--laser-pose applies to ROS bags only" in capsys.readouterr().err
+    assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "e")]) == 0
+    assert "the laser on the robot" not in (tmp_path / "e" / "report.md").read_text()   # CARMEN: its own poses
 
 
 def test_the_mount_through_a_common_ancestor_and_its_limits(run, tmp_path):
