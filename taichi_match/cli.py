@@ -428,7 +428,7 @@ def _slam(args):
              "loop_growth": ("--loop-growth", args.loop_growth),
              "robust_kernel": ("--robust-kernel", args.robust_kernel),
              "loop_consistency": ("--loop-consistency", args.loop_consistency),
-             "jump_check": ("--jump-check", args.jump_check)}
+             "jump_check": ("--jump-check", args.jump_check), "turn_edge": ("--turn-edge", args.turn_edge)}
     try:
         options = SlamOptions(**{field: off.get(value, value) if isinstance(value, str) else value
                                  for field, (_, value) in given.items() if value is not None})
@@ -770,6 +770,10 @@ def main(argv=None):
                       help="when the front end's match fails at an odometry step over X times the run's usual "
                            "ones, search for the scan around the previous one and bridge an odometry jump it "
                            "proves (default 3), or 'off' (see SlamOptions.jump_check)")
+    slam.add_argument("--turn-edge", type=_number_or_off, metavar="RADIANS",
+                      help="the front end charges walls off the other map's grid as unknown for a scan whose "
+                           "odometry step turned more than this (default 1.047: 60 degrees), or 'off' (see "
+                           "SlamOptions.turn_edge)")
     slam.add_argument("--front-end-levels", type=int, metavar="N",
                       help="pyramid levels of the front end's matches (default 2, see SlamOptions.scan_matcher)")
     slam.add_argument("--front-end-lookup", choices=("bilinear", "nearest"),
