@@ -85,10 +85,10 @@ def test_simulated_run_relative_translation_error_within_target(simulated, mappe
 
 def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
     """The issue's RPE target in degrees on this run: 0.23 (0.19-0.24 over twenty runs with the
-    odometry moved by a micrometre, bench/SLAM.md; 0.22 and 0.19-0.26 before ``turn_edge``). Not met reliably before each submap had a frame
-    node of its own: with its frame at its first scan's node 0.20-0.35 (median 0.23,
-    bench/SLAM_before_submap_frames.md), earlier 0.20-0.58 (scans at the 90-degree turns slid
-    0.3-0.6 degree for several scans in a row: docs/slam.md)."""
+    odometry moved by a micrometre, bench/SLAM.md; 0.22 and 0.19-0.26 before ``turn_edge``). Not
+    met reliably before each submap had a frame node of its own: with its frame at its first
+    scan's node 0.20-0.35 (median 0.23, bench/SLAM_before_submap_frames.md), earlier 0.20-0.58
+    (scans at the 90-degree turns slid 0.3-0.6 degree for several scans in a row: docs/slam.md)."""
     errors = trajectory_errors(mapped.poses, simulated.truth)
     assert errors["rpe_deg"] <= 0.3, errors
 
@@ -96,10 +96,10 @@ def test_simulated_run_relative_rotation_error_within_target(simulated, mapped):
 def test_simulated_run_loop_closures_against_the_truth(simulated, mapped):
     """The loop closures in the graph against the exact truth of the two nodes each joins (a submap
     frame's: ``evaluation.frame_reference``; wrong: 0.2 m or 1 degree off, Cartographer's
-    criterion): 3 of 133 on this run (3 of 136 before ``turn_edge``), 8 of 141 before ``loop_gate`` (5-10 over twenty runs with
-    the odometry moved by a micrometre, bench/SLAM.md before the gate; 8-16 with a submap's frame
-    at its first scan's node, bench/SLAM_before_submap_frames.md). Pins this run's spread; the
-    target (none wrong) is not met."""
+    criterion): 3 of 133 on this run (3 of 136 before ``turn_edge``), 8 of 141 before
+    ``loop_gate`` (5-10 over twenty runs with the odometry moved by a micrometre, bench/SLAM.md
+    before the gate; 8-16 with a submap's frame at its first scan's node,
+    bench/SLAM_before_submap_frames.md). Pins this run's spread; the target (none wrong) is not met."""
     from taichi_match import compose, inverse, wrap_angle
 
     truth = simulated.truth
@@ -860,7 +860,8 @@ def test_the_front_end_target_is_cropped_around_the_scan(short_run, monkeypatch)
         slam = Slam(crop_target=crop)
         matches = []
         match = slam._scan_matcher.match
-        slam._scan_matcher.match = lambda a, b, guess, **kw: matches.append((b, match(a, b, guess, **kw))) or matches[-1][1]
+        slam._scan_matcher.match = (lambda a, b, guess, **kw: matches.append((b, match(a, b, guess, **kw)))
+                                    or matches[-1][1])
         result = slam.run(short_run.log)
         assert len(casts) == len(matches) == result.scan_matches[1]
         smaller = sum(grid.prob.size < whole.prob.size for grid, whole in casts)
