@@ -898,7 +898,7 @@ class Slam:
         ``evidence`` "trinary": its trinary map, made from the counts directly (``BeamCounts.grid``)."""
         members = submap.scans if cast is None else [j for j in submap.scans if cast[j]]
         origin = inverse(est[submap.key])
-        poses = np.array([compose(origin, est[j]) for j in members])
+        poses = compose(origin, est[np.array(members, dtype=np.int64)]).reshape(-1, 3)
         counts, added = self._counts.get(submap.index, (None, set()))
         if counts is None or not added.issubset(members):
             counts, added = BeamCounts(resolution=self.options.resolution, model=self._map_model), set()
@@ -1240,7 +1240,7 @@ class Slam:
         """Whether the graph has moved one of a complete submap's scans, in its frame, by more than
         ``RECAST_CELLS`` along x or y or ``RECAST_RAD`` since its last cast."""
         scans, cast = submap.final_poses
-        now = np.array([compose(inverse(est[submap.key]), est[j]) for j in scans])
+        now = compose(inverse(est[submap.key]), est[np.array(scans, dtype=np.int64)]).reshape(-1, 3)
         return bool(np.abs(now[:, :2] - cast[:, :2]).max() > RECAST_CELLS * self.options.resolution
                     or np.abs(wrap_angle(now[:, 2] - cast[:, 2])).max() > RECAST_RAD)
 
@@ -1260,22 +1260,23 @@ class Slam:
         # loop closing in Python: 430 closures in its graph); the same floats as one by one
         frames = np.array([other["frames"] for other in edges], dtype=np.int64)
         along = np.abs(travelled[frames.ravel()].reshape(-1, 2) - np.array([travelled[a], travelled[b]]))
-        from_a = inverse(est[a])
-        for i in np.flatnonzero(along.max(axis=1) <= NEIGHBOUR_PATH):
-            other = edges[i]
-            a2, b2 = other["frames"]
-            path = float(along[i, 0] + along[i, 1])
-            predicted = compose(compose(compose(from_a, est[a2]), other["pose"]),
-                                compose(inverse(est[b2]), est[b]))
-            error = compose(inverse(z), predicted)
-            t_o, r_o = _sd(other["covariance"])
-            sd_r = math.sqrt(r_z**2 + r_o**2 + (rad_per_m * path + floor_rad) ** 2)
-            sd_t = math.sqrt(t_z**2 + t_o**2 + (per_m * path + floor_m) ** 2 + (math.hypot(z[0], z[1]) * sd_r) ** 2)
-            if math.hypot(error[0], error[1]) <= 3.0 * sd_t and abs(wrap_angle(error[2])) <= 3.0 * sd_r:
-                agree += 1
-            else:
-                disagree += 1
-        return agree, disagree
+        near = np.flatnonzero(along.max(axis=1) <= NEIGHBOUR_PATH)
+        if len(near) == 0:
+            return agree, disagree
+        # all the neighbours at once (one by one, fhw's 430 votes were a fifth of its loop closing)
+        frames, path = frames[near], along[near].sum(axis=1)
+        poses = np.array([edges[i]["pose"] for i in near], dtype=np.float64)
+        covariances = np.array([edges[i]["covariance"] for i in near], dtype=np.float64)
+        predicted = compose(compose(compose(inverse(est[a]), est[frames[:, 0]]), poses),
+                            compose(inverse(est[frames[:, 1]]), est[b]))
+        error = compose(inverse(z), predicted)
+        t_o = np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[:, :2, :2]).max(axis=1), 0.0))
+        r_o = np.sqrt(np.maximum(covariances[:, 2, 2], 0.0))
+        sd_r = np.sqrt(r_z**2 + r_o**2 + (rad_per_m * path + floor_rad) ** 2)
+        sd_t = np.sqrt(t_z**2 + t_o**2 + (per_m * path + floor_m) ** 2 + (math.hypot(z[0], z[1]) * sd_r) ** 2)
+        agrees = (np.hypot(error[:, 0], error[:, 1]) <= 3.0 * sd_t) & (np.abs(wrap_angle(error[:, 2])) <= 3.0 * sd_r)
+        agree = int(np.count_nonzero(agrees))
+        return agree, len(near) - agree
 
     def _admitted(self, loop, edges, est, travelled) -> bool:
         """Whether an accepted loop closure enters the graph: unless the neighbours' vote

@@ -42,3 +42,16 @@ def test_bad_pose(bad):
 def test_bad_poses(bad):
     with pytest.raises(InvalidPoseError):
         as_poses(bad)
+
+
+def test_batches_compose_and_invert_each_pose_as_alone():
+    """Batches of poses (broadcast against one pose or row by row) give each pose the bits of its
+    own call (single calls are checked against the matrices in the test above)."""
+    rng = np.random.default_rng(5)
+    a, b = rng.uniform(-50.0, 50.0, (200, 3)), rng.uniform(-50.0, 50.0, (200, 3))
+    a[:, 2] = rng.uniform(-10.0, 10.0, 200)
+    assert np.array_equal(compose(a, b), np.array([compose(p, q) for p, q in zip(a, b)]))
+    assert np.array_equal(compose(a[0], b), np.array([compose(a[0], q) for q in b]))
+    assert np.array_equal(inverse(a), np.array([inverse(p) for p in a]))
+    assert compose(a[0], b[:0]).shape == (0, 3)
+
