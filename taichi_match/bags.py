@@ -9,9 +9,10 @@ message's fields). Conventions, beyond those of ``logs``:
   finite and negative is invalid (NaN), one at or above ``range_max`` (or +inf) is no return.
 - Each scan's pose is the odometry pose at the scan's header stamp, interpolated linearly between
   the two odometry messages around it (headings unwrapped), composed with the laser's mounting:
-  its pose in the odometry's child frame (the robot's base), given (``laser_pose``) or read from
-  the bag's ``/tf_static`` (the chain of fixed transforms from the base to the scans' frame,
-  projected onto the floor: the laser level, or upside down, when its beams' angles are negated).
+  its pose in the odometry's child frame (the robot's base), given (``laser_pose``, ``upside_down``)
+  or read from the bag's ``/tf_static`` (the chain of fixed transforms from the base to the scans'
+  frame, projected onto the floor: the laser level, or upside down, when its beams' angles are
+  negated).
   Without either, or when the scans' frame is the base's, the laser sits at the base (with a
   ``LaserMountWarning`` when the two frames differ). Moving transforms (``/tf``) are not read.
   Scans before the first or after the last odometry message are left out, and so counted in
@@ -155,11 +156,13 @@ def laser_mount(transforms, base: str, laser: str):
     return (float(translation[0]), float(translation[1]), theta), bool(up < 0)
 
 
-def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, laser_pose=None):
+def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, laser_pose=None,
+                upside_down: bool = False):
     """Read a ROS 1 (``.bag``) or ROS 2 (folder or ``.db3``/``.mcap``) bag.
 
-    ``laser_pose``: the laser's (x, y, theta) in the odometry's child frame (metres, radians), level;
-    None (the default): from the bag's ``/tf_static`` (see the module docstring).
+    ``laser_pose``: the laser's (x, y, theta) in the odometry's child frame (metres, radians), level,
+    or with ``upside_down`` mounted upside down (its beams' angles negated); None (the default):
+    from the bag's ``/tf_static`` (see the module docstring).
 
     Returns
     -------
@@ -173,6 +176,11 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
     except ImportError as exc:                    # pragma: no cover - depends on the installation
         raise ImportError("reading bags needs rosbags: pip install 'taichi-match[slam]'") from exc
     mount = None
+    if not isinstance(upside_down, (bool, np.bool_)):
+        raise InvalidOptionError(f"upside_down must be True or False; got {upside_down!r}")
+    if upside_down and laser_pose is None:
+        raise InvalidOptionError("upside_down goes with laser_pose (without it the bag's /tf_static says how the "
+                                 "laser is mounted)")
     if laser_pose is not None:
         try:
             given = np.asarray(laser_pose)
@@ -183,7 +191,7 @@ def read_rosbag(path, *, scan_topic: str = None, odometry_topic: str = None, las
                 or abs(given[2]) > 2 * math.pi):
             raise InvalidOptionError(f"laser_pose must be three numbers (x, y, theta): x and y metres within "
                                      f"{MAX_MOUNT_M:g}, theta radians within 2 pi; got {laser_pose!r}")
-        mount = (tuple(float(v) for v in given), False)
+        mount = (tuple(float(v) for v in given), bool(upside_down))
     path = Path(path)
     bag = path.parent if path.suffix in (".db3", ".mcap") else path
     scans, odometry, static, bases = [], [], {}, set()
@@ -275,9 +283,10 @@ def _mount_from_bag(path, static, bases, scans, given):
     if given is not None:
         apart = np.subtract(found[0], given[0]) if found is not None else np.zeros(3)
         apart[2] = wrap_angle(apart[2])
-        if found is not None and (found[1] or np.abs(apart).max() > 1e-3):
-            warn(f"laser_pose {given[0]} differs from the bag's static transforms from {base!r} to {laser!r}: "
-                 f"{found[0]}{', upside down' if found[1] else ''}; laser_pose is used, level")
+        if found is not None and (found[1] != given[1] or np.abs(apart).max() > 1e-3):
+            warn(f"laser_pose {given[0]}{', upside down' if given[1] else ''} differs from the bag's static "
+                 f"transforms from {base!r} to {laser!r}: {found[0]}{', upside down' if found[1] else ''}; "
+                 f"laser_pose is used, {'upside down' if given[1] else 'level'}")
         return given, "as given: laser_pose"
     if base and base == laser:
         return ((0.0, 0.0, 0.0), False), f"the scans' frame is the odometry's, {base!r}"

@@ -4,6 +4,7 @@ import argparse
 import dataclasses
 import math
 import os
+import re
 import sys
 import tempfile
 
@@ -380,7 +381,7 @@ def _slam(args):
         raise InvalidOptionError("--max-range applies to CARMEN logs only (a bag's LaserScan gives its own "
                                  "range_max)")
     for flag, given in (("--scan-topic", args.scan_topic), ("--odom-topic", args.odom_topic),
-                        ("--laser-pose", args.laser_pose)):
+                        ("--laser-pose", args.laser_pose), ("--laser-upside-down", args.laser_upside_down or None)):
         if not bag and given is not None:
             raise InvalidOptionError(f"{flag} applies to ROS bags only ({args.log} is read as a CARMEN log, whose "
                                      f"scans carry the laser's pose)")
@@ -393,9 +394,9 @@ def _slam(args):
             warnings.simplefilter("always", LaserMountWarning)
             try:
                 log, left_out = read_rosbag(args.log, scan_topic=args.scan_topic, odometry_topic=args.odom_topic,
-                                            laser_pose=args.laser_pose)
-            except InvalidOptionError as exc:         # name the flag the user typed
-                text = f"--laser-pose: {exc}" if str(exc).startswith("laser_pose") else str(exc)
+                                            laser_pose=args.laser_pose, upside_down=args.laser_upside_down)
+            except InvalidOptionError as exc:         # name the flags the user typed
+                text = str(exc).replace("laser_pose", "--laser-pose").replace("upside_down", "--laser-upside-down")
                 raise InvalidOptionError(text) from None
         for warning in caught:                        # ours as a line; any other as Python shows it
             if issubclass(warning.category, LaserMountWarning):
@@ -611,7 +612,12 @@ def _check_picture(args):
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse, with its errors on one line like every other error of the command."""
+    """argparse, with its errors on one line like every other error of the command, and values
+    such as -1e-3 or -.5 read as numbers (argparse before Python 3.13 took them for options)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\.?\d")          # Python 3.13's pattern
 
     def error(self, message):
         self.exit(EXIT_BAD_INPUT, f"taichi-match: error: {message} (see {self.prog} --help)\n")
@@ -706,6 +712,8 @@ def main(argv=None):
     slam.add_argument("--laser-pose", type=float, nargs=3, metavar=("X", "Y", "THETA"),
                       help="a bag's laser pose on the robot: metres and radians in the odometry's child frame, "
                            "level (default: from the bag's /tf_static; without it the laser sits at the base)")
+    slam.add_argument("--laser-upside-down", action="store_true",
+                      help="with --laser-pose: the laser is mounted upside down (its beams' angles negated)")
     slam.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     slam.add_argument("--force", action="store_true", help="replace existing outputs in DIR")
     slam.add_argument("--reference", metavar="TUM", help="a reference trajectory: print ATE and RPE against it")

@@ -313,6 +313,23 @@ def test_an_upside_down_laser_has_its_angles_negated(run, tmp_path):
     want = _expected_laser_poses(log, mount)
     np.testing.assert_allclose([s.pose[:2] for s in got.scans], want[:, :2], atol=1e-9)
     assert ", upside down (the bag's /tf_static" in got.laser_mount
+    # the same mounting given instead (a bag without /tf_static): the same scans; given level
+    # against the bag's upside-down transform: a warning
+    import warnings
+
+    from taichi_match.bags import LaserMountWarning
+
+    write_bag(tmp_path / "bare", log, static=None, scan=mirrored)
+    given, _ = read_rosbag(tmp_path / "bare", laser_pose=mount, upside_down=True)
+    for a, b in zip(given.scans, got.scans):
+        assert np.array_equal(a.angles, b.angles) and np.array_equal(a.ranges, b.ranges)
+        np.testing.assert_allclose(a.pose, b.pose, atol=1e-12)
+    assert given.laser_mount.endswith(", upside down (as given: laser_pose)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LaserMountWarning)
+        read_rosbag(tmp_path / "run", laser_pose=mount, upside_down=True)      # as the bag says: no warning
+    with pytest.warns(LaserMountWarning, match="upside down; laser_pose is used, level"):
+        read_rosbag(tmp_path / "run", laser_pose=mount)
 
 
 def test_a_tilted_laser_or_an_unknown_mount(run, tmp_path):
@@ -336,6 +353,10 @@ def test_a_tilted_laser_or_an_unknown_mount(run, tmp_path):
                 (True, False, True), (10**400, 0, 0)]:
         with pytest.raises(InvalidOptionError, match="laser_pose"):
             read_rosbag(tmp_path / "unknown", laser_pose=bad)
+    with pytest.raises(InvalidOptionError, match="upside_down goes with laser_pose"):
+        read_rosbag(tmp_path / "unknown", upside_down=True)
+    with pytest.raises(InvalidOptionError, match="upside_down must be True or False"):
+        read_rosbag(tmp_path / "unknown", laser_pose=(0.0, 0.0, 0.0), upside_down="yes")
 
 
 def test_cli_slam_laser_pose(run, tmp_path, capsys):
@@ -357,10 +378,18 @@ def test_cli_slam_laser_pose(run, tmp_path, capsys):
     assert "(as given: laser_pose)" in (tmp_path / "b" / "report.md").read_text()
     assert ((tmp_path / "a" / "trajectory.tum").read_text() == (tmp_path / "b" / "trajectory.tum").read_text())
     assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "d"), "--laser-pose", "0", "0", "90"]) == 2
-    assert "taichi-match: error: --laser-pose: " in capsys.readouterr().err       # radians, not degrees
+    assert "taichi-match: error: --laser-pose must be three numbers" in capsys.readouterr().err   # radians
+    # numbers in exponent form, negative (argparse before Python 3.13 took them for options)
+    assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "f"), "--laser-pose", "-1e-3", "0",
+                 "-.5e-2"]) == 0
+    assert "x -0.001 m, y 0 m, theta -0.005 rad (as given" in (tmp_path / "f" / "report.md").read_text()
+    assert main(["slam", str(tmp_path / "bare"), "--out", str(tmp_path / "g"), "--laser-upside-down"]) == 2
+    assert "error: --laser-upside-down goes with --laser-pose" in capsys.readouterr().err
     write_carmen(tmp_path / "run.log", run.log)
     assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "c"), "--laser-pose", "0", "0", "0"]) == 2
     assert "--laser-pose applies to ROS bags only" in capsys.readouterr().err
+    assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "c"), "--laser-upside-down"]) == 2
+    assert "--laser-upside-down applies to ROS bags only" in capsys.readouterr().err
     assert main(["slam", str(tmp_path / "run.log"), "--out", str(tmp_path / "e")]) == 0
     assert "the laser on the robot" not in (tmp_path / "e" / "report.md").read_text()   # CARMEN: its own poses
 
