@@ -35,6 +35,7 @@ FLASER lines), then against ``NAME.reference.tum``:
     python bench/slam.py --simulated                       # the simulated run of the README too (first row)
     python bench/slam.py --simulated --logs                # only the simulated run
     python bench/slam.py --logs orebro csail --jitter 2     # the spread over three runs per log
+    python bench/slam.py --logs orebro --jitter 19 --first-seed 100    # another twenty: other seeds
     python bench/slam.py --set target_refresh=5            # options other than the defaults
     python bench/slam.py --set scan_matcher.levels=3 --set scan_matcher.interpolation=nearest
                                                            # the front end's MatchOptions before 2026-12-06
@@ -254,6 +255,8 @@ def main():
     parser.add_argument("--plots", help="folder for one picture per log")
     parser.add_argument("--jitter", type=int, default=0, metavar="N",
                         help="N more runs per log with the odometry moved by about 1e-6 (seeded): the spread")
+    parser.add_argument("--first-seed", type=int, default=0, metavar="K",
+                        help="the jittered runs' seeds K .. K + N - 1 (default 0): another sample of the spread")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="a SlamOptions field other than the default (a Python literal, or a word taken as a "
                              "string), e.g. target_refresh=5, solver=isam2, scan_matcher.levels=3")
@@ -278,7 +281,7 @@ def main():
     def jitter_runs(name, log, reference):
         if args.jitter > 0:
             spreads[name] = [rows[-1]] + [run_one(name, jittered(log, seed), reference, options=options)
-                                          for seed in range(args.jitter)]
+                                          for seed in range(args.first_seed, args.first_seed + args.jitter)]
 
     if args.simulated:
         from taichi_match.simulate import simulate_log
