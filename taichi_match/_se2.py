@@ -42,6 +42,8 @@ def wrap_angle(theta: npt.ArrayLike) -> float | np.ndarray:
     """
     theta = np.asarray(theta, dtype=np.float64)
     wrapped = np.pi - np.mod(np.pi - theta, 2.0 * np.pi)
+    # the modulo rounds up to 2 pi itself for theta just above pi (and its turns): -pi, which is pi
+    wrapped = np.where(wrapped == -np.pi, np.pi, wrapped)
     return wrapped if wrapped.ndim else float(wrapped)
 
 
@@ -207,12 +209,13 @@ def compose(pose_a2b: npt.ArrayLike, pose_b2c: npt.ArrayLike) -> np.ndarray:
     0.000 0.000 0.000
     """
     a, b = np.asarray(pose_a2b, dtype=np.float64), np.asarray(pose_b2c, dtype=np.float64)
-    if a.shape == b.shape == (3,):
+    if a.shape == b.shape == (3,) and math.isfinite(a[2]):
         # one pose: plain floats (the same IEEE arithmetic and libm as the batch, a fifth of the
         # time: the mapping loop composes tens of thousands of single poses a run)
         (x, y, theta), (bx, by, b_theta) = a.tolist(), b.tolist()
         c, s = math.cos(theta), math.sin(theta)
         return np.array([c * bx - s * by + x, s * bx + c * by + y, _wrapped(theta + b_theta)])
+    _check_components(a, b)         # (a heading not finite comes here: NumPy's cosine NaN, math's raises)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     return np.stack([c * b[..., 0] - s * b[..., 1] + a[..., 0], s * b[..., 0] + c * b[..., 1] + a[..., 1],
                      wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
@@ -239,10 +242,11 @@ def inverse(pose_a2b: npt.ArrayLike) -> np.ndarray:
     [-2.0, 1.0, -1.571]
     """
     a = np.asarray(pose_a2b, dtype=np.float64)
-    if a.shape == (3,):
+    if a.shape == (3,) and math.isfinite(a[2]):
         x, y, theta = a.tolist()
         c, s = math.cos(theta), math.sin(theta)
         return np.array([-(c * x + s * y), s * x - c * y, _wrapped(-theta)])
+    _check_components(a)
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x, y = a[..., 0], a[..., 1]
     return np.stack([-(c * x + s * y), s * x - c * y, wrap_angle(-a[..., 2])], axis=-1)
@@ -250,4 +254,13 @@ def inverse(pose_a2b: npt.ArrayLike) -> np.ndarray:
 
 def _wrapped(theta: float) -> float:
     """``wrap_angle`` of one float, in plain floats (Python's float modulo is NumPy's: the same bits)."""
-    return math.pi - (math.pi - theta) % (2.0 * math.pi)
+    wrapped = math.pi - (math.pi - theta) % (2.0 * math.pi)
+    return math.pi if wrapped == -math.pi else wrapped
+
+
+def _check_components(*poses: np.ndarray) -> None:
+    """Poses or batches of them: (x, y, theta) along the last axis, else an InvalidPoseError."""
+    for pose in poses:
+        if pose.ndim == 0 or pose.shape[-1] != 3:
+            raise InvalidPoseError(f"a pose has three components (x, y, theta) along its last axis; got shape "
+                                   f"{pose.shape}")

@@ -284,9 +284,9 @@ def _mount_from_bag(path, static, bases, scans, given):
         apart = np.subtract(found[0], given[0]) if found is not None else np.zeros(3)
         apart[2] = wrap_angle(apart[2])
         if found is not None and (found[1] != given[1] or np.abs(apart).max() > 1e-3):
-            warn(f"laser_pose {given[0]}{', upside down' if given[1] else ''} differs from the bag's static "
-                 f"transforms from {base!r} to {laser!r}: {found[0]}{', upside down' if found[1] else ''}; "
-                 f"laser_pose is used, {'upside down' if given[1] else 'level'}")
+            said = {False: "level", True: "upside down"}
+            warn(f"laser_pose {given[0]}, {said[given[1]]}, differs from the bag's static transforms from {base!r} "
+                 f"to {laser!r}: {found[0]}, {said[found[1]]}; laser_pose is used")
         return given, "as given: laser_pose"
     if base and base == laser:
         return ((0.0, 0.0, 0.0), False), f"the scans' frame is the odometry's, {base!r}"
