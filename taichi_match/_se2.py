@@ -192,7 +192,8 @@ def compose(pose_a2b: npt.ArrayLike, pose_b2c: npt.ArrayLike) -> np.ndarray:
     numpy.ndarray, shape (3,) or the broadcast (..., 3)
         r_A2C, C's frame in A's, theta wrapped into (-pi, pi]: mapping a point of C into B and
         then into A is mapping it into A with r_A2C. A batch gives each pose the same bits as
-        composing it alone.
+        composing it alone where NumPy's cosine and sine are the C library's (NumPy 1.25 on; 1.23
+        and 1.24 on AVX-512 machines differ in the last bit).
 
     Examples
     --------
