@@ -1266,12 +1266,10 @@ class Slam:
         # all the neighbours at once (one by one, fhw's 430 votes were a fifth of its loop closing)
         frames, path = frames[near], along[near].sum(axis=1)
         poses = np.array([edges[i]["pose"] for i in near], dtype=np.float64)
-        covariances = np.array([edges[i]["covariance"] for i in near], dtype=np.float64)
+        t_o, r_o = _sd([edges[i]["covariance"] for i in near])
         predicted = compose(compose(compose(inverse(est[a]), est[frames[:, 0]]), poses),
                             compose(inverse(est[frames[:, 1]]), est[b]))
         error = compose(inverse(z), predicted)
-        t_o = np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[:, :2, :2]).max(axis=1), 0.0))
-        r_o = np.sqrt(np.maximum(covariances[:, 2, 2], 0.0))
         sd_r = np.sqrt(r_z**2 + r_o**2 + (rad_per_m * path + floor_rad) ** 2)
         sd_t = np.sqrt(t_z**2 + t_o**2 + (per_m * path + floor_m) ** 2 + (math.hypot(z[0], z[1]) * sd_r) ** 2)
         agrees = (np.hypot(error[:, 0], error[:, 1]) <= 3.0 * sd_t) & (np.abs(wrap_angle(error[:, 2])) <= 3.0 * sd_r)
@@ -1511,9 +1509,12 @@ def overlap_share(a: Footprint, b: Footprint, pose) -> float:
 
 
 def _sd(covariance):
-    """(largest translation sd, rotation sd) of an (x, y, theta) covariance."""
+    """(largest translation sd, rotation sd) of an (x, y, theta) covariance, or of each of a batch
+    (..., 3, 3) of them."""
     c = np.asarray(covariance, dtype=np.float64)
-    return math.sqrt(max(np.linalg.eigvalsh(c[:2, :2]).max(), 0.0)), math.sqrt(max(c[2, 2], 0.0))
+    translation = np.sqrt(np.maximum(np.linalg.eigvalsh(c[..., :2, :2]).max(axis=-1), 0.0))
+    rotation = np.sqrt(np.maximum(c[..., 2, 2], 0.0))
+    return (float(translation), float(rotation)) if c.ndim == 2 else (translation, rotation)
 
 
 def slam(log: LaserLog, options: SlamOptions = None, **overrides) -> SlamResult:
