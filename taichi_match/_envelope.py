@@ -75,6 +75,7 @@ CHUNK = 256
 # The sums are the same either way (one per chunk, each summed in order).
 SERIAL_BELOW = 100_000
 _OFF_MAP = np.float32(-4.0)
+_EDGE = {False: np.zeros(1, dtype=np.float32), True: np.ones(1, dtype=np.float32)}   # ``envelope_chunks``'s flag
 WALL = 0.5                      # a cell with p >= this is a wall, weighing p (``wall_points``)
 
 
@@ -329,12 +330,12 @@ def _build(ti):
     f64_2d = ti.types.ndarray(dtype=ti.f64, ndim=2)
 
     @ti.func
-    def wall_cost(grid: ti.template(), points: ti.template(), m, iv, iu, edge: ti.template()):
+    def wall_cost(grid: ti.template(), points: ti.template(), m, iv, iu, edge):
         v = grid[iv, iu]
         # unknown: w * min(unknown_cost, 1 - hi) (v = -1 - (1 - hi)); off the map (v = -4): 0, or
-        # with ``edge`` w * unknown_cost, as on an unknown cell no wall reaches
+        # with ``edge`` 1 (not 0) w * unknown_cost, as on an unknown cell no wall reaches
         near = ti.min(points[3, m], points[2, m] * (-1.0 - v))
-        off = points[3, m] if ti.static(edge) else 0.0
+        off = points[3, m] * edge
         return ti.select(v >= 0.0, points[2, m] * v, ti.select(v > -3.0, near, off))
 
     @ti.func
@@ -350,8 +351,7 @@ def _build(ti):
         return a
 
     @ti.func
-    def chunk_sum(grid: ti.template(), points: ti.template(), affine, c, bilinear: ti.template(),
-                  edge: ti.template()):
+    def chunk_sum(grid: ti.template(), points: ti.template(), affine, c, bilinear: ti.template(), edge):
         u_max = grid.shape[1] - 1
         v_max = grid.shape[0] - 1
         c0, c1, c2 = ti.f32(affine[0]), ti.f32(affine[1]), ti.f32(affine[2])
@@ -386,8 +386,11 @@ def _build(ti):
     @ti.kernel
     def envelope_chunks(grid_a: f32_2d, points_b: f32_2d, matrix_b2a: f64_2d,
                         grid_b: f32_2d, points_a: f32_2d, matrix_a2b: f64_2d, poses: f64_2d,
-                        out: ti.types.ndarray(dtype=ti.f32, ndim=3), serial: ti.template(), bilinear: ti.template(),
-                        edge: ti.template()):
+                        edge_unknown: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                        out: ti.types.ndarray(dtype=ti.f32, ndim=3), serial: ti.template(), bilinear: ti.template()):
+        # ``edge_unknown[0]``, 0 or 1, read at run time rather than a template argument: one variant
+        # fewer for Taichi to load in a process (0.15-0.2 s from its offline cache), the same bits
+        edge = edge_unknown[0]
         chunks_b = (points_b.shape[1] + CHUNK - 1) // CHUNK
         chunks_a = (points_a.shape[1] + CHUNK - 1) // CHUNK
         ti.loop_config(serialize=serial)
@@ -430,7 +433,7 @@ class EnvelopeEngine:
         self._b2a = AffineMap(a.frame, b.frame, PAD)
         self._a2b = AffineMap(b.frame, a.frame, PAD)
         self._launcher = Launcher(_kernel, (self._grid_a, self._points_b, self._b2a.matrix, self._grid_b,
-                                            self._points_a, self._a2b.matrix, None))
+                                            self._points_a, self._a2b.matrix, None, _EDGE[self._edge]))
 
     def __call__(self, poses, count="all"):
         """(e (N,), overlap (N,) int64): the overlap is counted in the same launch; with ``count``
@@ -442,7 +445,7 @@ class EnvelopeEngine:
         if chunks == 0:
             return np.zeros(n), np.zeros(n, dtype=np.int64)
         serial = n * (self._points_b.shape[1] + self._points_a.shape[1]) < SERIAL_BELOW
-        out = self._launcher.run((poses,), (2, n, chunks), (serial, self._bilinear, self._edge))
+        out = self._launcher.run((poses,), (2, n, chunks), (serial, self._bilinear))
         values = out[0].sum(axis=1, dtype=np.float64)
         if count == "none":
             return values, None

@@ -164,6 +164,19 @@ def test_an_unknown_grid_edge_charges_each_wall_off_the_grid_the_unknown_cost(ca
             np.testing.assert_allclose(far, everything, rtol=1e-5)
 
 
+def test_both_grid_edges_interleaved_each_keep_their_own_values(rng):
+    """The grid edge is read by the kernel at run time (one compiled variant for both): engines of
+    either setting on the same maps, launched in turn, each give their own oracle's values."""
+    a, b, pa, pb, poses = oracle_case(next(iter(CASES)), rng)
+    engines = {edge: make_engine("taichi", pa, pb, 0.3, "bilinear", edge) for edge in ("free", "unknown")}
+    oracle = {edge: make_engine("numpy", pa, pb, 0.3, "bilinear", edge)(poses)[0] for edge in ("free", "unknown")}
+    walls = len(walls_of(a)[0]) + len(walls_of(b)[0])
+    for _ in range(2):
+        for edge in ("unknown", "free"):
+            np.testing.assert_allclose(engines[edge](poses)[0], oracle[edge], rtol=1e-5, atol=1e-5 * walls)
+    assert np.max(oracle["unknown"] - oracle["free"]) > 1.0
+
+
 def test_the_grid_edge_option_reaches_the_match(room_pair):
     """A matcher with ``grid_edge="unknown"`` evaluates the discrepancy so: at the truth, with B's
     grid larger than what A covers, its walls off A's grid add to e."""
