@@ -1,5 +1,6 @@
 """Taichi hygiene and the reusable matcher: lazy init, silence, host runtime, fork, no recompiles."""
 
+import ast
 import os
 import subprocess
 import sys
@@ -341,3 +342,27 @@ def test_the_first_match_may_come_from_another_thread(start, expected):
     """)
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0 and expected in done.stdout, (done.stdout, done.stderr[-2000:])
+
+
+def test_our_kernels_compile_without_source_excerpts_a_hosts_keep_them(tmp_path):
+    """Taichi 1.7's frontend formats a source excerpt for every syntax node it compiles; for this
+    package's kernels only the file, line and kernel are kept (``_taichi._plain_source_lines``),
+    for any other file (a host's kernels) Taichi's excerpt with its carets."""
+    from types import SimpleNamespace
+
+    from taichi_match import _taichi
+
+    ti = _taichi.taichi()
+    if tuple(ti.__version__)[:2] != (1, 7):
+        pytest.skip("written for Taichi 1.7's frontend")
+    context = ti.lang.ast.ast_transformer_utils.ASTTransformerContext
+    node = ast.parse("total = walls + 1").body[0]
+
+    def pos_info(file):
+        ctx = SimpleNamespace(file=file, lineno_offset=4, indent=0, src=["total = walls + 1"],
+                              func=SimpleNamespace(func=random_map))
+        return context.get_pos_info(ctx, node)
+
+    ours, host = _taichi.__file__, str(tmp_path / "host.py")
+    assert pos_info(ours) == f'File "{ours}", line 5, in random_map:\n'
+    assert pos_info(host).startswith(f'File "{host}", line 5, in random_map:\ntotal = walls + 1\n^^^^')
