@@ -440,6 +440,8 @@ def _slam(args):
                  if v is not None}
     if front_end:
         options = dataclasses.replace(options, scan_matcher=options.scan_matcher.replace(**front_end))
+    if args.loop_grid_edge is not None:
+        options = dataclasses.replace(options, matcher=options.matcher.replace(grid_edge=args.loop_grid_edge))
     bar = _progress(f"slam {os.path.basename(args.log)}", len(log), args.progress or sys.stderr.isatty())
     result = Slam(options).run(log, progress=bar)
     notes = [f"the laser on the robot: {log.laser_mount}"] if log.laser_mount else []
@@ -787,6 +789,10 @@ def main(argv=None):
     slam.add_argument("--front-end-lookup", choices=("bilinear", "nearest"),
                       help="the front end's lookup of each wall's cost: blended between the four cell centres "
                            "around it (default) or the nearest cell's (the default before 2026-12-06, with 3 levels)")
+    slam.add_argument("--loop-grid-edge", choices=("free", "unknown"),
+                      help="what a wall of one submap costs in a loop closure's match where it lands off the other "
+                           "submap's grid: nothing (default) or as on an unknown cell (fewer wrong closures on "
+                           "exact truth; see SlamOptions.matcher and docs/slam.md)")
     slam.add_argument("--resolution", type=float, metavar="M", help="cell side, metres (default 0.05)")
     slam.add_argument("--max-ray", type=float, metavar="M", help="beams are cut there, metres (default 20)")
     slam.add_argument("--free-margin", type=float, metavar="M",

@@ -669,6 +669,22 @@ def test_cli_slam_front_end_lookup_and_levels_reach_the_front_end(short_run, tmp
         main(["slam", str(log_path), "--out", str(tmp_path / "bad2"), "--front-end-lookup", "cubic"])
 
 
+def test_cli_slam_loop_grid_edge_reaches_the_loop_closures_only(short_run, tmp_path, capsys):
+    """``--loop-grid-edge unknown`` sets the loop closures' ``MatchOptions.grid_edge`` (not the front
+    end's), recorded in report.md; the default stays "free"; another value is refused."""
+    log_path = tmp_path / "run.log"
+    write_carmen(log_path, short_run.log)
+    for k, (args, edge) in enumerate([([], "free"), (["--loop-grid-edge", "unknown"], "unknown")]):
+        out = tmp_path / f"out{k}"
+        assert main(["slam", str(log_path), "--out", str(out), *args]) == 0
+        text = (out / "report.md").read_text()
+        front, loops = text.split("scan_matcher=")[1], text.split("scan_matcher=")[0].split("matcher=")[1]
+        assert f"grid_edge='{edge}'" in loops and "grid_edge='free'" in front
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["slam", str(log_path), "--out", str(tmp_path / "bad"), "--loop-grid-edge", "Unknown"])
+
+
 def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(short_run, tmp_path, monkeypatch,
                                                                             capsys):
     """A read-only place for the outputs (``os.access`` says so, as on a read-only file system)
