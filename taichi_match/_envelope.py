@@ -332,8 +332,8 @@ def _build(ti):
     @ti.func
     def wall_cost(grid: ti.template(), points: ti.template(), m, iv, iu, edge):
         v = grid[iv, iu]
-        # unknown: w * min(unknown_cost, 1 - hi) (v = -1 - (1 - hi)); off the map (v = -4): 0, or
-        # with ``edge`` 1 (not 0) w * unknown_cost, as on an unknown cell no wall reaches
+        # unknown: w * min(unknown_cost, 1 - hi) (v = -1 - (1 - hi)); off the map (v = -4): ``edge``
+        # (0 or 1) times w * unknown_cost: nothing, or as on an unknown cell no wall reaches
         near = ti.min(points[3, m], points[2, m] * (-1.0 - v))
         off = points[3, m] * edge
         return ti.select(v >= 0.0, points[2, m] * v, ti.select(v > -3.0, near, off))

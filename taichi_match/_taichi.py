@@ -1,7 +1,8 @@
 """Taichi's runtime for taichi_match: started lazily, once, on the CPU, and guarded.
 
 Taichi is imported and initialised on the first evaluation: CPU backend, all allowed cores (its
-worker threads pinned one per core, see ``_pin_threads``), no banner, no network version check.
+worker threads pinned one per core, see ``_pin_threads``), no banner, no network version check,
+and its frontend spared the source excerpts of our kernels (``_plain_source_lines``).
 A host that already called ``ti.init`` keeps its runtime, threads untouched. Calls are serialised
 with a lock (Taichi is not thread-safe), and a process forked after Taichi was initialised gets
 an error instead of the hang Taichi would give. Every module with kernels gets them through
