@@ -178,7 +178,7 @@ def report(result, source: str = "", notes=()) -> str:
              f"- {loop_summary(result)} (in the graph: accepted, consistent with their neighbours and at the end "
              f"with the optimised graph); matched by helper "
              f"processes: {sum(lp['helper'] for lp in result.loops)}; not matched, already tied (``loop_ties``): "
-             f"{result.loops_tied}",
+             f"{result.loops_tied}; not matched, too few walls at the guess: {result.loops_few_walls}",
              f"- odometry steps checked by a search (``jump_check``): "
              f"{sum(c['window'] is not None for c in result.jump_checks)}; "
              f"{jump_summary(result)}",

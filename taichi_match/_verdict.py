@@ -36,7 +36,7 @@ from ._distance import far, wall_distance
 from ._grid import cells
 from ._se2 import inverse, transform_points
 
-__all__ = ["Evidence", "evidence", "compare_walls", "placed_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS",
+__all__ = ["Evidence", "evidence", "compare_walls", "wall_statistics", "placed_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS",
            "MIN_AGREEMENT", "MAX_CONFLICT", "MAX_UNCERTAINTY_M"]
 
 AGREE_CELLS = 2.0
@@ -115,7 +115,12 @@ def compare_walls(walls_a: WallDistance, walls_b: WallDistance, placed):
     """(walls compared, agreement, conflict) for maps with walls ``walls_a``, ``walls_b`` placed in
     each other's frame by ``placed_walls`` (see the module docstring)."""
     b_in_a, a_in_b = placed
-    d = np.concatenate([walls_a.lookup(*b_in_a), walls_b.lookup(*a_in_b)])
+    return wall_statistics(np.concatenate([walls_a.lookup(*b_in_a), walls_b.lookup(*a_in_b)]))
+
+
+def wall_statistics(d):
+    """(walls compared, agreement, conflict) from the distances ``WallDistance.lookup`` found for
+    the walls placed both ways (NaN: not on a known cell)."""
     d = d[~np.isnan(d)]
     n = len(d)
     return n, (float(np.mean(d <= AGREE_CELLS)) if n else 0.0), (float(np.mean(d > CONFLICT_CELLS)) if n else 1.0)

@@ -1602,3 +1602,58 @@ def test_a_terminating_signal_while_the_outputs_are_staged_removes_the_staging(t
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=60)
     assert done.returncode == -signal.SIGTERM and (tmp_path / "cleaned").read_text() == "yes"
     assert b"Traceback" not in done.stderr
+
+
+def test_candidates_with_few_walls_at_the_guess_are_not_matched(simulated, mapped, monkeypatch):
+    """Loop-closure candidates whose submaps' walls at the guess meet fewer than ``LOOP_MIN_WALLS``
+    known cells of the other are not matched (and counted); on the simulated run those would all
+    have been turned down: matching every candidate gives the same poses, bit for bit, and more
+    closures tried, none of the extra ones accepted."""
+    import taichi_match.slam as slam_module
+
+    assert mapped.loops_few_walls > 0
+    assert f"too few walls at the guess: {mapped.loops_few_walls}" in slam_module.report(mapped)
+    monkeypatch.setattr(slam_module, "LOOP_MIN_WALLS", 0)
+    every = Slam().run(simulated.log)
+    assert every.loops_few_walls == 0
+    assert len(every.loops) == len(mapped.loops) + mapped.loops_few_walls
+    assert sum(lp["accepted"] for lp in every.loops) == sum(lp["accepted"] for lp in mapped.loops)
+    np.testing.assert_array_equal(every.poses, mapped.poses)
+
+
+def test_the_audit_compares_every_pair_as_compare_walls_does(simulated, mapped, monkeypatch):
+    """The audit's lookups, made per grid for all its pairs at once, give each pair the walls
+    compared, agreement and conflict that ``compare_walls`` gives the pair alone: with thresholds
+    that let every pair through, the audit lists exactly the pairs a plain loop over
+    ``compare_walls`` finds with walls compared, with the same figures."""
+    import taichi_match.slam as slam_module
+    from taichi_match._verdict import compare_walls, placed_walls
+
+    monkeypatch.setattr(slam_module, "DISAGREE_AGREEMENT", 2.0)
+    monkeypatch.setattr(slam_module, "DISAGREE_CONFLICT", -1.0)
+    monkeypatch.setattr(slam_module, "MIN_WALLS", 1)
+    seen = {}
+    original = Slam.audit
+
+    def keeping(self, scans, submaps, est):
+        out = original(self, scans, submaps, est)
+        usable = [sub for sub in submaps if sub.final_grid is not None]
+        walls = {sub.index: self._matcher.prepare(sub.final_grid, levels=1).wall_distance for sub in usable}
+        plain = []
+        for j, b in enumerate(usable):
+            for a in usable[:j]:
+                if set(a.scans) & set(b.scans):
+                    continue
+                wa, wb = walls[a.index], walls[b.index]
+                compared, agreement, conflict = compare_walls(
+                    wa, wb, placed_walls(wa, wb, compose(inverse(est[a.key]), est[b.key])))
+                if compared:
+                    plain.append(((a.index, b.index), compared, agreement, conflict))
+        seen["audit"] = [(p["submaps"], p["walls"], p["agreement"], p["conflict"]) for p in out]
+        seen["plain"] = plain
+        return out
+
+    monkeypatch.setattr(Slam, "audit", keeping)
+    Slam(audit="report", loop_gate=None).run(simulated.log)
+    assert len(seen["plain"]) >= 100
+    assert seen["audit"] == seen["plain"]
