@@ -37,7 +37,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from slam import LOGS  # noqa: E402
 from yardstick import corridor_median_ms  # noqa: E402
 
-
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -36,8 +36,8 @@ from ._distance import far, wall_distance
 from ._grid import cells
 from ._se2 import inverse, transform_points
 
-__all__ = ["Evidence", "evidence", "compare_walls", "wall_statistics", "placed_walls", "AGREE_CELLS", "CONFLICT_CELLS", "MIN_WALLS",
-           "MIN_AGREEMENT", "MAX_CONFLICT", "MAX_UNCERTAINTY_M"]
+__all__ = ["Evidence", "evidence", "compare_walls", "wall_statistics", "placed_walls", "AGREE_CELLS", "CONFLICT_CELLS",
+           "MIN_WALLS", "MIN_AGREEMENT", "MAX_CONFLICT", "MAX_UNCERTAINTY_M"]
 
 AGREE_CELLS = 2.0
 CONFLICT_CELLS = 4.0

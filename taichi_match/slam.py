@@ -42,7 +42,8 @@ edges and loop closures. When a submap is complete it is matched against every e
 submap that shares no scan with it and whose frame lies within ``loop_radius`` plus
 ``loop_growth`` times the distance travelled between the two, from the relative pose of the
 current estimates (candidates sharing almost no known cells at that guess, ``LOOP_MIN_OVERLAP``,
-or whose walls meet fewer than ``LOOP_MIN_WALLS`` known cells of the other there, are not matched). The earlier submap is matched as cast at the current estimates: when the graph
+or whose walls meet fewer than ``LOOP_MIN_WALLS`` known cells of the other there, are not
+matched). The earlier submap is matched as cast at the current estimates: when the graph
 has moved one of its scans in its frame by more than ``RECAST_CELLS`` or ``RECAST_RAD`` since it
 was last cast (later loop closures straighten old submaps), it is cast again first, so that the
 match sees the submap the graph now believes in and the edge's frame is the frame's current
