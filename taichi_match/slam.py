@@ -157,8 +157,9 @@ LOOP_MIN_OVERLAP = 0.03
 # for a match to be accepted; a match moves the walls by the guess's error). Over every candidate
 # of a run on fhw, freiburg-101 and aces at default options (2026-12-08), the accepted matches had
 # 30-48 walls at their guesses at least (5th percentile 78-135); those under 20 were 99 of 790 on fhw
-# (0.55 s of matching), 6 of 305 and 126 of 365, none accepted: not matching them changes no
-# closure, so no bit of the run.
+# (0.55 s of matching), 6 of 305 and 126 of 365, none accepted. A candidate turned down never
+# enters the graph, so a run whose skipped candidates would all have been turned down keeps every
+# bit (the nine runs at seed 0 of bench/slam.py did; not a guarantee: a match can gain walls).
 LOOP_MIN_WALLS = 20
 # An older submap is cast again before a loop-closure match when the graph has moved one of its
 # scans, in its frame, by more than this many cells along x or y or this many radians since its
