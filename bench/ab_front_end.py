@@ -44,11 +44,16 @@ ROOT = Path(__file__).resolve().parents[1]
 LOGS = ROOT.parent / "shared" / "logs"
 
 
-def old_package(revision, folder):
-    """The package at ``revision`` importable as ``taichi_match_base`` from ``folder``."""
+def extract_package(revision, folder):
+    """The package at git ``revision`` written into ``folder`` (as ``folder/taichi_match``)."""
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", revision, "taichi_match"], check=True,
                              capture_output=True).stdout
     subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+
+
+def old_package(revision, folder):
+    """The package at ``revision`` importable as ``taichi_match_base`` from ``folder``."""
+    extract_package(revision, folder)
     (Path(folder) / "taichi_match").rename(Path(folder) / "taichi_match_base")
     sys.path.insert(0, str(folder))
     import taichi_match_base

@@ -34,10 +34,9 @@ from pathlib import Path
 from taichi_match.reproduce import git_revision
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ab_front_end import extract_package  # noqa: E402
 from slam import LOGS  # noqa: E402
 from yardstick import corridor_median_ms  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def command(log, out, tree=None):
@@ -68,9 +67,7 @@ def main():
     base = {name: [] for name in names}
     with tempfile.TemporaryDirectory() as scratch:
         if args.baseline:
-            archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.baseline, "taichi_match"], check=True,
-                                     capture_output=True).stdout
-            subprocess.run(["tar", "-x", "-C", scratch], input=archive, check=True)
+            extract_package(args.baseline, scratch)
         for round_ in range(args.rounds):
             for number, name in enumerate(names):
                 log = glob.glob(str(LOGS / name / f"{name}.log*"))[0]

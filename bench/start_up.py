@@ -28,6 +28,9 @@ from pathlib import Path
 
 from taichi_match.reproduce import git_revision
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from ab_front_end import extract_package  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 LOGS = ROOT.parent / "shared" / "logs"
 
@@ -91,9 +94,7 @@ def main():
         sys.exit(f"no log {args.log!r} in {LOGS}")
     log = found[0]
     with tempfile.TemporaryDirectory() as folder:
-        archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.revision, "taichi_match"], check=True,
-                                 capture_output=True).stdout
-        subprocess.run(["tar", "-x", "-C", folder], input=archive, check=True)
+        extract_package(args.revision, folder)
         trees = {args.revision: Path(folder), "this tree": ROOT}
         for tree in trees.values():                    # warm Taichi's offline cache for both
             one(tree, log)
