@@ -13,12 +13,14 @@ from taichi_match import GridMap, InvalidOptionError, match
 from taichi_match._grid import trinary
 from taichi_match._se2 import compose, transform_points, wrap_angle
 from taichi_match._search import (
+    CLEAR_CELLS,
     COMPLETE_FRACTION,
     RUNNER_UP_FRACTION,
     SearchOptions,
     _Lattice,
     _points,
     lattice_cells,
+    score_values,
     search,
 )
 from taichi_match.scenes import corridor
@@ -160,6 +162,28 @@ def test_corridor_any_x_along_it():
     assert np.all(np.abs(np.abs(ys) - 3.025) <= 0.1)
     # and the search says so: a runner-up elsewhere along the corridor scores (almost) as much
     assert len(result.hypotheses) >= 2 and result.hypotheses[1].score >= 0.9 * result.hypotheses[0].score
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_clear_free_cells_and_the_score_are_scipys_distance_transform(seed):
+    """B's clear free cells are its free cells at least CLEAR_CELLS from every wall, and A's score
+    values come from the walls' Euclidean distances, both as SciPy's distance transform gives
+    them (the search has its own, Taichi's ``wall_distance`` and a shifted OR)."""
+    rng = np.random.default_rng(seed)
+    prob = np.where(rng.random((60, 80)) < 0.6, 0.2, np.nan)
+    prob[rng.random(prob.shape) < 0.03] = 0.9
+    prob[:, 0] = 0.2                           # a free cell on the border, next to none
+    grid = GridMap(prob, 0.05, (-1.0, 2.0, 0.0))
+    walls, free = _points(grid)
+    far = ndimage.distance_transform_edt(~(prob >= 0.5)) >= CLEAR_CELLS
+    expected = grid.cell_centres(*np.nonzero((prob < 0.5) & far))
+    assert len(free) > 100
+    np.testing.assert_array_equal(free, expected)
+    np.testing.assert_array_equal(walls, grid.cell_centres(*np.nonzero(prob >= 0.5)))
+    v, w = score_values(grid, 0.1)
+    d = ndimage.distance_transform_edt(~(prob >= 0.5)) * grid.resolution
+    hi = np.exp(-0.5 * (d / 0.1) ** 2)
+    np.testing.assert_array_equal(v, np.where(~np.isnan(prob), 2.0 * hi - 1.0, hi).astype(np.float32))
 
 
 def test_lattice_cells_are_where_the_pose_puts_the_points():
