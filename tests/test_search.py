@@ -172,7 +172,7 @@ def test_the_clear_free_cells_and_the_score_are_scipys_distance_transform(seed):
     rng = np.random.default_rng(seed)
     prob = np.where(rng.random((60, 80)) < 0.6, 0.2, np.nan)
     prob[rng.random(prob.shape) < 0.03] = 0.9
-    prob[:, 0] = 0.2                           # a free cell on the border, next to none
+    prob[:, 0] = 0.2                           # free cells on the border, where the shifted copies pad
     grid = GridMap(prob, 0.05, (-1.0, 2.0, 0.0))
     walls, free = _points(grid)
     far = ndimage.distance_transform_edt(~(prob >= 0.5)) >= CLEAR_CELLS
